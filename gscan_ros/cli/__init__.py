@@ -1,0 +1,64 @@
+"""`gscan-ros`: the one command-line entry point; each subcommand lives in its own module.
+
+A subcommand module defines `register(subparsers)` (adds its parser and sets
+`func=run`) and `run(args) -> int`. Modules import heavy libraries (torch, rclpy)
+inside `run`, so `gscan-ros --help` stays fast. Any `GscanError` becomes one line on
+stderr and exit status 1; bad usage exits 2 (argparse).
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from gscan_ros import __version__
+from gscan_ros.errors import GscanError
+
+# Subcommand modules, in help order. A module missing here is simply not offered.
+SUBCOMMANDS = (
+    "generate",
+    "verify",
+    "render",
+    "parse",
+    "train",
+    "evaluate",
+    "replay",
+    "demo",
+    "bringup",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="gscan-ros",
+        description="gSCAN grounded command following with compositional networks (Kuo et al. 2021).",
+    )
+    parser.add_argument("--version", action="version", version=f"gscan-ros {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name in SUBCOMMANDS:
+        try:
+            module = importlib.import_module(f"gscan_ros.cli.{name}")
+        except ModuleNotFoundError as exc:
+            if exc.name == f"gscan_ros.cli.{name}":
+                continue
+            raise
+        module.register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except GscanError as exc:
+        print(f"gscan-ros {args.command}: error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"gscan-ros {args.command}: interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:
+        return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

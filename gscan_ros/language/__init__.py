@@ -1,0 +1,1 @@
+"""language layer (see docs/architecture.md)."""

@@ -1,13 +1,15 @@
 """Constant tables and small immutable types of the gSCAN world (GSCAN_SPEC §1, §2, §4).
 
-Everything here is pure data; the physics lives in `world.py`, the planner in
-`planner.py`. Positions are (row, col) as in the dataset JSON (row 0 = north).
+Pure data plus the invariants every `Situation` satisfies (checked on construction);
+the physics lives in `world.py`, the planner in `planner.py`. Positions are (row, col) as in the dataset JSON (row 0 = north).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 from enum import IntEnum
 from typing import NamedTuple
+
+from gscan_ros.errors import SituationError
 
 GRID_SIZE = 6
 
@@ -23,6 +25,8 @@ NUM_CHANNELS = NUM_OBJECT_CHANNELS + 1 + 4  # 16
 
 # Weight classes: sizes 1-2 light (moves every primitive), 3-4 heavy (every second).
 HEAVY_MIN_SIZE = 3
+LIGHT_MOMENTUM = 1
+HEAVY_MOMENTUM = 2
 
 # Command vocabulary (GSCAN_SPEC §5). Two-word adverbs are single tokens.
 INTRANSITIVE_VERBS: tuple[str, ...] = ("walk",)
@@ -111,9 +115,23 @@ class WorldObject:
     size: int
     position: Position
 
+    def __post_init__(self) -> None:
+        if type(self.position) is not Position:
+            object.__setattr__(self, "position", Position(*self.position))
+
     @property
     def heavy(self) -> bool:
         return self.size >= HEAVY_MIN_SIZE
+
+    @property
+    def momentum_threshold(self) -> int:
+        """Push/pull primitives needed per cell of movement (GSCAN_SPEC §1.2)."""
+        return HEAVY_MOMENTUM if self.heavy else LIGHT_MOMENTUM
+
+    @property
+    def vector(self) -> str:
+        """The 11-character object `vector` string of the dataset, released channel order."""
+        return object_vector(self)
 
 
 @dataclass(frozen=True)
@@ -122,6 +140,11 @@ class Situation:
 
     `placed_objects` keeps the JSON order (the target is usually first) but object
     order carries no meaning (quirk Q19); compare with `object_set()`.
+
+    Construction validates the state (cells inside the grid, one object per cell,
+    known attributes, target among the placed objects) and fills the derived
+    `distance_to_target` / `direction_to_target` when they are not given; when they
+    are given they must agree with the positions. Violations raise `SituationError`.
     """
 
     agent_position: Position
@@ -134,5 +157,135 @@ class Situation:
     distance_to_target: int | None = None
     extra: dict = field(default_factory=dict, compare=False, hash=False, repr=False)
 
+    def __post_init__(self) -> None:
+        _validate_situation(self)
+
     def object_set(self) -> frozenset[WorldObject]:
         return frozenset(self.placed_objects)
+
+    @classmethod
+    def from_json(cls, d: dict) -> "Situation":
+        """Parse a gSCAN `situation` dict; raises SituationError naming the bad field."""
+        from gscan_ros.world.serialization import situation_from_json
+
+        return situation_from_json(d)
+
+    def to_json(self) -> dict:
+        """The gSCAN `situation` dict (strings where the dataset has strings)."""
+        from gscan_ros.world.serialization import situation_to_json
+
+        return situation_to_json(self)
+
+
+# Object `vector` strings: one-hot size, shape, color blocks (GSCAN_SPEC §4).
+_SIZE_INDEX = {s: i for i, s in enumerate(SIZES)}
+_SHAPE_INDEX = {s: len(SIZES) + i for i, s in enumerate(SHAPES)}
+_COLOR_INDEX = {c: len(SIZES) + len(SHAPES) + i for i, c in enumerate(COLORS)}
+
+
+def object_channels(shape: str, color: str, size: int) -> tuple[int, int, int]:
+    """The three object channels (size, shape, color) set for an object."""
+    return _SIZE_INDEX[size], _SHAPE_INDEX[shape], _COLOR_INDEX[color]
+
+
+def _vector_string(shape: str, color: str, size: int) -> str:
+    bits = ["0"] * NUM_OBJECT_CHANNELS
+    for ch in object_channels(shape, color, size):
+        bits[ch] = "1"
+    return "".join(bits)
+
+
+_VECTORS = {
+    (shape, color, size): _vector_string(shape, color, size)
+    for shape in SHAPES
+    for color in COLORS
+    for size in SIZES
+}
+
+
+def object_vector(obj: WorldObject) -> str:
+    """11-character `vector` string of an object in the released channel order."""
+    return _VECTORS[obj.shape, obj.color, obj.size]
+
+
+# (sign of column offset, sign of northward offset) -> dataset direction string.
+_DIRECTION_NAMES = {
+    (1, 0): "e", (0, 1): "n", (-1, 0): "w", (0, -1): "s",
+    (1, 1): "ne", (1, -1): "se", (-1, -1): "sw", (-1, 1): "nw",
+}
+DIRECTIONS_TO_TARGET: tuple[str, ...] = tuple(_DIRECTION_NAMES.values())
+
+
+def _sign(x: int) -> int:
+    return (x > 0) - (x < 0)
+
+
+def direction_between(start: Position, goal: Position) -> str | None:
+    """Compass direction (n, ne, ... ) from start to goal; None when they coincide."""
+    return _DIRECTION_NAMES.get((_sign(goal.col - start.col), _sign(start.row - goal.row)))
+
+
+def manhattan(a: Position, b: Position) -> int:
+    return abs(a.row - b.row) + abs(a.col - b.col)
+
+
+def _check_object(obj: WorldObject, where: str, n: int) -> None:
+    if obj.shape not in SHAPES:
+        raise SituationError(f"{where}.shape: unknown shape {obj.shape!r}; known: {', '.join(SHAPES)}")
+    if obj.color not in COLORS:
+        raise SituationError(f"{where}.color: unknown color {obj.color!r}; known: {', '.join(COLORS)}")
+    if obj.size not in SIZES or isinstance(obj.size, bool):
+        raise SituationError(f"{where}.size: expected an integer 1-4, got {obj.size!r}")
+    _check_position(obj.position, f"{where}.position", n)
+
+
+def _check_position(pos: Position, where: str, n: int) -> None:
+    if not (0 <= pos.row < n and 0 <= pos.col < n):
+        raise SituationError(f"{where}: {tuple(pos)} is outside the {n}x{n} grid")
+
+
+def _validate_situation(s: Situation) -> None:
+    """Normalise field types and enforce the invariants listed on `Situation`."""
+    setf = object.__setattr__
+    n = s.grid_size
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise SituationError(f"situation.grid_size: expected a positive integer, got {n!r}")
+    setf(s, "agent_position", Position(*s.agent_position))
+    _check_position(s.agent_position, "situation.agent_position", n)
+    try:
+        setf(s, "agent_direction", Heading(s.agent_direction))
+    except ValueError:
+        raise SituationError(
+            f"situation.agent_direction: expected 0-3 (E, S, W, N), got {s.agent_direction!r}"
+        ) from None
+    setf(s, "placed_objects", tuple(s.placed_objects))
+    occupied: dict[Position, int] = {}
+    for i, obj in enumerate(s.placed_objects):
+        where = f"situation.placed_objects.{i}"
+        _check_object(obj, where, n)
+        other = occupied.setdefault(obj.position, i)
+        if other != i:
+            raise SituationError(
+                f"{where}.position: cell {tuple(obj.position)} already holds placed object {other}"
+            )
+    target = s.target_object
+    if target is None:
+        return
+    if target not in s.placed_objects:
+        raise SituationError(f"situation.target_object: {target} is not among the placed objects")
+    distance = manhattan(s.agent_position, target.position)
+    if s.distance_to_target is None:
+        setf(s, "distance_to_target", distance)
+    elif s.distance_to_target != distance:
+        raise SituationError(
+            f"situation.distance_to_target: {s.distance_to_target} disagrees with the agent-target "
+            f"Manhattan distance {distance}"
+        )
+    direction = direction_between(s.agent_position, target.position)
+    if s.direction_to_target is None:
+        setf(s, "direction_to_target", direction)
+    elif s.direction_to_target != direction:
+        raise SituationError(
+            f"situation.direction_to_target: {s.direction_to_target!r} disagrees with the agent and "
+            f"target positions ({direction!r})"
+        )

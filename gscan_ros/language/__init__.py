@@ -1,1 +1,35 @@
-"""language layer (see docs/architecture.md)."""
+"""language layer: tokens, grammars, parsers -> CommandGraph, WordNet lexicon (docs/language.md)."""
+from gscan_ros.language.dependency import graph_from_dependencies
+from gscan_ros.language.grammar import all_commands, gscan_grammar, phrase_grammar
+from gscan_ros.language.graph import CommandGraph, GraphEdge, GraphNode
+from gscan_ros.language.lexicon import Concept, Lexicon
+from gscan_ros.language.parser import Parser
+from gscan_ros.language.registry import available_parsers, get_parser, register_parser
+from gscan_ros.language.tokens import CONTENT_WORDS, MAX_TOKENS, VOCABULARY, tokenize
+
+__all__ = [
+    "ALL_COMMANDS",
+    "CONTENT_WORDS",
+    "CommandGraph",
+    "Concept",
+    "GraphEdge",
+    "GraphNode",
+    "Lexicon",
+    "MAX_TOKENS",
+    "Parser",
+    "VOCABULARY",
+    "all_commands",
+    "available_parsers",
+    "get_parser",
+    "graph_from_dependencies",
+    "gscan_grammar",
+    "phrase_grammar",
+    "register_parser",
+    "tokenize",
+]
+
+
+def __getattr__(name: str):
+    if name == "ALL_COMMANDS":  # enumerated from the grammar on first use
+        return all_commands()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -1,0 +1,41 @@
+"""`gscan-ros parse`: show how a command is parsed (the network a policy would build for it)."""
+from __future__ import annotations
+
+import argparse
+
+BUILTIN_PARSERS = ("semantic", "constituency", "dependency")
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "parse",
+        help="parse a command into a CommandGraph",
+        description="Parse a gSCAN command and print its graph as an indented tree (or JSON).",
+    )
+    p.add_argument("words", nargs="+", metavar="COMMAND", help='e.g. "walk to a red small circle cautiously"')
+    p.add_argument("--parser", default="semantic", help=f"{' | '.join(BUILTIN_PARSERS)} (default: semantic)")
+    p.add_argument("--all", action="store_true", help="print the parse of every built-in parser")
+    p.add_argument("--json", action="store_true", help="print the graph JSON (one line per parser)")
+    p.add_argument(
+        "--lexicon",
+        choices=("wordnet", "none"),
+        default="wordnet",
+        help="share modules between WordNet-related words (default) or not",
+    )
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from gscan_ros.language import Lexicon, get_parser
+
+    lexicon = Lexicon.from_wordnet() if args.lexicon == "wordnet" else Lexicon.none()
+    names = BUILTIN_PARSERS if args.all else (args.parser,)
+    graphs = [get_parser(name, lexicon).parse(" ".join(args.words)) for name in names]
+    for i, graph in enumerate(graphs):
+        if args.json:
+            print(graph.to_json())
+            continue
+        if args.all:
+            print(("\n" if i else "") + f"{graph.parser}:")
+        print(graph.pretty())
+    return 0

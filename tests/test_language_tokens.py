@@ -1,0 +1,62 @@
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from gscan_ros.errors import CommandError
+from gscan_ros.language import MAX_TOKENS, VOCABULARY, tokenize
+
+
+def test_vocabulary_is_the_18_gscan_tokens():
+    assert len(VOCABULARY) == len(set(VOCABULARY)) == 18
+    assert {"while spinning", "while zigzagging", "to", "a"} <= set(VOCABULARY)
+
+
+@pytest.mark.parametrize(
+    "text, tokens",
+    [
+        ("walk to a red small circle while spinning",
+         ("walk", "to", "a", "red", "small", "circle", "while spinning")),
+        ("  Pull A Big Square, while   ZIGZAGGING!", ("pull", "a", "big", "square", "while zigzagging")),
+        ("walk,to,a,circle,cautiously", ("walk", "to", "a", "circle", "cautiously")),  # dataset.txt form
+        ("push a\tcylinder.\n", ("push", "a", "cylinder")),
+    ],
+)
+def test_tokenize_is_case_space_and_punctuation_tolerant(text, tokens):
+    assert tokenize(text) == tokens
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("walk to a smal circle", r"unknown word 'smal'; closest known words: 'small'"),
+        ("walk to a circle spining", r"unknown word 'spining'; closest known words: 'while spinning'"),
+        ("walk to a circle while running", r"unknown word 'while running'; closest known words: 'while spinning'"),
+        ("walk while", r"unknown word 'while'; closest known words: 'while spinning', 'while zigzagging'"),
+        ("qqqq", r"unknown word 'qqqq'; known words: walk, push"),
+        ("", "command is empty"),
+        ("   \n", "command is empty"),
+        ("?!,", "has no words"),
+        ("walk\x00to a circle", "non-printable character 0x0000 at position 4"),
+        ("walk " * (MAX_TOKENS + 1), f"more than {MAX_TOKENS} tokens"),
+        ("while spinning " * (MAX_TOKENS + 1), f"more than {MAX_TOKENS} tokens"),
+        ("walk " * 10**6, f"more than {MAX_TOKENS} tokens"),
+    ],
+)
+def test_bad_input_raises_command_error_naming_the_problem(text, message):
+    with pytest.raises(CommandError, match=message):
+        tokenize(text)
+
+
+def test_non_string_is_rejected():
+    with pytest.raises(CommandError, match="must be a string, got int"):
+        tokenize(42)
+
+
+def test_exactly_max_tokens_is_accepted():
+    assert len(tokenize("walk " * MAX_TOKENS)) == MAX_TOKENS
+    assert len(tokenize("while spinning " * MAX_TOKENS)) == MAX_TOKENS
+
+
+@given(st.lists(st.sampled_from(VOCABULARY), min_size=1, max_size=12), st.sampled_from([" ", ", ", "  ", " . "]))
+def test_joined_vocabulary_tokens_round_trip(tokens, separator):
+    assert tokenize(separator.join(t.upper() for t in tokens)) == tuple(tokens)

@@ -1,1 +1,20 @@
 """Pure conversions between gscan_ros domain objects and ROS 2 messages (std_msgs, sensor_msgs)."""
+from msg_adapters.action import action_to_msg, msg_to_action
+from msg_adapters.command_graph import graph_to_msg, msg_to_graph
+from msg_adapters.errors import MessageFormatError
+from msg_adapters.image import attention_to_msg, image_to_msg, msg_to_attention, msg_to_image
+from msg_adapters.observation import msg_to_observation, observation_to_msg
+
+__all__ = [
+    "MessageFormatError",
+    "action_to_msg",
+    "attention_to_msg",
+    "graph_to_msg",
+    "image_to_msg",
+    "msg_to_action",
+    "msg_to_attention",
+    "msg_to_graph",
+    "msg_to_image",
+    "msg_to_observation",
+    "observation_to_msg",
+]

@@ -1,0 +1,56 @@
+"""`gscan-ros replay BAG`: re-run recorded episodes closed-loop and score them against the bag.
+
+Each complete episode of the bag is restarted from its recorded initial situation and
+command; the policy acts, the one World executes, and the produced action sequence
+is compared with the recorded one (exact match, overall and per split).
+"""
+from __future__ import annotations
+
+import argparse
+import itertools
+from pathlib import Path
+
+from gscan_ros.errors import DatasetFormatError
+
+
+def _positive(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text}")
+    return value
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "replay",
+        help="re-run a bag's episodes closed-loop and compare with the recorded actions",
+        description=__doc__.split("\n\n")[1],
+    )
+    parser.add_argument("bag", type=Path, help="rosbag2 directory (metadata.yaml + MCAP)")
+    parser.add_argument("--checkpoint", type=Path, default=None, help="model checkpoint (default: the shipped model)")
+    parser.add_argument("--max-episodes", type=_positive, default=None, help="replay only the first N episodes")
+    parser.add_argument("--splits", nargs="+", default=None, metavar="SPLIT", help="only episodes of these splits")
+    parser.add_argument("--batch-size", type=_positive, default=64, help="episodes decoded together")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from gscan_ros.data.bag import iter_bag_episodes
+    from gscan_ros.model.policy import Policy
+    from gscan_ros.training.evaluate import evaluate_episodes
+
+    reader = iter_bag_episodes(args.bag, args.splits)
+    episodes = list(itertools.islice(reader, args.max_episodes))
+    if not episodes:
+        raise DatasetFormatError(f"{args.bag}: no complete episodes to replay ({reader.report.summary()})")
+    policy = Policy.from_checkpoint(args.checkpoint)
+    result = evaluate_episodes(policy, episodes, batch_size=args.batch_size)
+    matched = sum(p.exact_match for p in result.predictions)
+    model = args.checkpoint or "the shipped model"
+    print(f"replayed {len(episodes)} episodes of {args.bag} with {model} (parser {policy.parser_name})")
+    print(f"exact match: {result.exact_match:.2f}% ({matched}/{len(episodes)})")
+    for split, stats in result.summary().items():
+        print(f"  {split:<16} {stats['exact_match']:6.2f}%  of {stats['examples']} episodes")
+    if reader.report.lost_episodes and args.max_episodes is None:
+        print(f"warning: {reader.report.summary()}")
+    return 0

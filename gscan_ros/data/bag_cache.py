@@ -1,0 +1,191 @@
+"""Decode-once cache of a bag's episodes and observations, for fast repeated training loads.
+
+Decoding a bag (CDR + JSON + situations) runs at MCAP-reader speed; training reads
+the same bag many times. The first `load_episode_cache` decodes the bag and stores
+plain arrays in `<bag_dir>/.cache/episodes.npz` (no pickles); later calls load them
+as long as the key (format version, each MCAP file's size and mtime, a hash of
+metadata.yaml) still matches.
+
+Teacher-forced training needs commands, actions and observations, not Situations,
+and parsing a Situation is the slowest step of a load, so situations stay JSON text
+until an Episode is asked for (`cache.episode(i)`, `cache.episodes`). Observations
+are 0/1 one-hot planes, stored bit-packed along the channel axis (16 -> 2 bytes).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+from pathlib import Path
+from typing import Iterable
+
+import numpy as np
+
+from gscan_ros.data.bag import BagEpisodeReader, GraphCache, episode_from_header
+from gscan_ros.data.bag_metadata import METADATA_FILE, read_bag_info
+from gscan_ros.data.episode import Episode
+from gscan_ros.errors import DatasetFormatError
+from gscan_ros.world.types import Action
+
+log = logging.getLogger(__name__)
+
+CACHE_VERSION = 2
+CACHE_DIR = ".cache"
+CACHE_FILE = "episodes.npz"
+_ACTIONS = tuple(Action)
+
+
+class EpisodeCache:
+    """A bag's episodes (optionally one split subset) with all their observations.
+
+    Row i is the i-th selected episode in bag order. `commands`, `splits`,
+    `actions(i)` and `states(i)` are cheap; `episode(i)` builds the full Episode
+    (parsing its situation once), `episodes` builds them all.
+    """
+
+    def __init__(self, arrays: dict[str, np.ndarray], rows: np.ndarray, where: str):
+        self._arrays = arrays
+        self._rows = rows
+        self._where = where
+        headers = json.loads(arrays["headers"].tobytes())
+        self.headers: list[dict] = [headers[r] for r in rows]
+        graphs = json.loads(arrays["graphs"].tobytes())
+        self._graph_json: list[str] = [graphs[r] for r in rows]
+        self._graphs = GraphCache()
+        self._episodes: dict[int, Episode] = {}
+
+    def __len__(self) -> int:
+        return len(self._rows)
+
+    @property
+    def commands(self) -> list[str]:
+        return [h["command"] for h in self.headers]
+
+    @property
+    def splits(self) -> list[str]:
+        return [h["split"] for h in self.headers]
+
+    def actions(self, index: int) -> tuple[Action, ...]:
+        """Gold actions of episode `index` (EOS excluded)."""
+        row = self._rows[index]
+        start, stop = self._arrays["action_offsets"][row : row + 2]
+        return tuple(_ACTIONS[a] for a in self._arrays["actions"][start:stop])
+
+    def packed_states(self, index: int) -> np.ndarray:
+        """uint8[T+1, 6, 6, 2]: episode `index`'s observations, bit-packed over channels."""
+        row = self._rows[index]
+        start, stop = self._arrays["state_offsets"][row : row + 2]
+        return self._arrays["packed_states"][start:stop]
+
+    def states(self, index: int) -> np.ndarray:
+        """uint8[T+1, 6, 6, 16]: the same arrays as `episode(index).states()`."""
+        return np.unpackbits(self.packed_states(index), axis=-1, count=int(self._arrays["channels"]))
+
+    def episode(self, index: int) -> Episode:
+        episode = self._episodes.get(index)
+        if episode is None:
+            row = self._rows[index]
+            start, stop = self._arrays["situation_offsets"][row : row + 2]
+            header = {**self.headers[index], "situation": json.loads(self._arrays["situations"][start:stop].tobytes())}
+            episode = episode_from_header(header, self.actions(index), self._where)
+            self._graphs.attach(episode, self._graph_json[index], self._where)
+            self._episodes[index] = episode
+        return episode
+
+    @property
+    def episodes(self) -> list[Episode]:
+        return [self.episode(i) for i in range(len(self))]
+
+
+def cache_path(bag_dir: str | os.PathLike) -> Path:
+    return Path(bag_dir) / CACHE_DIR / CACHE_FILE
+
+
+def _cache_key(bag_dir: Path) -> str:
+    info = read_bag_info(bag_dir)
+    parts = [f"v{CACHE_VERSION}", hashlib.sha256((bag_dir / METADATA_FILE).read_bytes()).hexdigest()]
+    for path in info.mcap_paths:
+        stat = path.stat()
+        parts.append(f"{path.name}:{stat.st_size}:{stat.st_mtime_ns}")
+    return "|".join(parts)
+
+
+def load_episode_cache(
+    bag_dir: str | os.PathLike, splits: Iterable[str] | None = None, *, rebuild: bool = False
+) -> EpisodeCache:
+    """Episodes and observations of a bag, decoded once and cached next to it.
+
+    `splits` selects after loading (the cache always holds the whole bag). A bag whose
+    directory is read-only is decoded without writing the cache (logged).
+    """
+    bag_dir = Path(bag_dir)
+    key = _cache_key(bag_dir)
+    path = cache_path(bag_dir)
+    arrays = None if rebuild else _load(path, key)
+    if arrays is None:
+        arrays = _decode(bag_dir, key)
+        _save(path, arrays)
+    count = len(arrays["action_offsets"]) - 1
+    rows = np.arange(count)
+    if splits is not None:
+        wanted = frozenset(splits)
+        headers = json.loads(arrays["headers"].tobytes())
+        rows = np.asarray([r for r in rows if headers[r]["split"] in wanted], dtype=np.int64)
+    return EpisodeCache(arrays, rows, str(bag_dir))
+
+
+def _buffer(texts: list[bytes]) -> tuple[np.ndarray, np.ndarray]:
+    """Concatenated byte strings plus int64 offsets (len + 1)."""
+    offsets = np.zeros(len(texts) + 1, dtype=np.int64)
+    np.cumsum([len(t) for t in texts], out=offsets[1:])
+    return np.frombuffer(b"".join(texts), dtype=np.uint8), offsets
+
+
+def _decode(bag_dir: Path, key: str) -> dict[str, np.ndarray]:
+    reader = BagEpisodeReader(bag_dir, decode_states=True)
+    headers, situations, graphs, actions, action_offsets, states = [], [], [], [], [0], []
+    for record in reader.records():
+        header = dict(record.header)
+        situations.append(json.dumps(header.pop("situation"), separators=(",", ":")).encode())
+        headers.append(header)
+        graphs.append(record.graph_json or "")
+        actions.extend(int(a) for a in record.episode.actions)
+        action_offsets.append(len(actions))
+        states.append(record.states)
+    all_states = np.concatenate(states) if states else np.zeros((0, 6, 6, 16), np.uint8)
+    if all_states.size and all_states.max() > 1:
+        raise DatasetFormatError(f"{bag_dir}: observations are not 0/1 one-hot encodings")
+    situation_bytes, situation_offsets = _buffer(situations)
+    return {
+        "key": np.array(key),
+        "headers": np.frombuffer(json.dumps(headers).encode(), dtype=np.uint8),
+        "situations": situation_bytes,
+        "situation_offsets": situation_offsets,
+        "graphs": np.frombuffer(json.dumps(graphs).encode(), dtype=np.uint8),
+        "actions": np.asarray(actions, dtype=np.uint8),
+        "action_offsets": np.asarray(action_offsets, dtype=np.int64),
+        "packed_states": np.packbits(all_states, axis=-1),
+        "state_offsets": np.cumsum([0] + [len(s) for s in states], dtype=np.int64),
+        "channels": np.array(all_states.shape[-1]),
+    }
+
+
+def _load(path: Path, key: str) -> dict[str, np.ndarray] | None:
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            if str(data["key"]) != key:
+                return None
+            return {name: data[name] for name in data.files}
+    except (OSError, KeyError, ValueError):  # missing, stale layout or torn file: rebuild
+        return None
+
+
+def _save(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    try:
+        path.parent.mkdir(exist_ok=True)
+        tmp = path.with_suffix(".tmp.npz")
+        np.savez(tmp, **arrays)
+        os.replace(tmp, path)
+    except OSError as exc:
+        log.warning("cannot write bag cache %s (%s); decoding again next time", path, exc)

@@ -1,0 +1,66 @@
+"""Observation uint8[row, col, channel] <-> std_msgs/UInt8MultiArray (DESIGN.md `observation`).
+
+The layout follows the std_msgs/MultiArrayLayout convention: one dimension per array
+axis, outermost first, `stride` = number of elements spanned by one step of the axis
+(so `dim[0].stride` is the total size) and `data_offset` 0. Labels are fixed
+("row", "col", "channel") so a subscriber can check it is reading an observation and
+not some other byte array.
+"""
+from __future__ import annotations
+
+import numpy as np
+from std_msgs.msg import MultiArrayDimension, UInt8MultiArray
+
+from gscan_ros.world.types import GRID_SIZE, NUM_CHANNELS
+from msg_adapters.errors import MessageFormatError
+
+OBSERVATION_LABELS: tuple[str, ...] = ("row", "col", "channel")
+OBSERVATION_SHAPE: tuple[int, ...] = (GRID_SIZE, GRID_SIZE, NUM_CHANNELS)
+
+
+def _strides(shape: tuple[int, ...]) -> tuple[int, ...]:
+    """Row-major element strides in the MultiArrayLayout sense (product of inner sizes)."""
+    return tuple(int(np.prod(shape[i:])) for i in range(len(shape)))
+
+
+def observation_to_msg(observation: np.ndarray) -> UInt8MultiArray:
+    """Wrap a uint8[row, col, channel] encoding (World.encode()) in a UInt8MultiArray."""
+    array = np.asarray(observation)
+    if array.dtype != np.uint8 or array.ndim != 3:
+        raise MessageFormatError(
+            f"observation must be a uint8[row, col, channel] array, got {array.dtype}{list(array.shape)}"
+        )
+    msg = UInt8MultiArray()
+    msg.layout.dim = [
+        MultiArrayDimension(label=label, size=size, stride=stride)
+        for label, size, stride in zip(OBSERVATION_LABELS, array.shape, _strides(array.shape))
+    ]
+    msg.layout.data_offset = 0
+    msg.data = np.ascontiguousarray(array).tobytes()
+    return msg
+
+
+def msg_to_observation(msg: UInt8MultiArray, *, shape: tuple[int, ...] | None = OBSERVATION_SHAPE) -> np.ndarray:
+    """uint8[row, col, channel] view of the message data; rejects any other layout.
+
+    `shape` pins the expected sizes (default 6x6x16); pass None to accept any grid.
+    The result is read-only (it shares the message's buffer); copy it to modify.
+    """
+    dims = msg.layout.dim
+    labels = tuple(d.label for d in dims)
+    if labels != OBSERVATION_LABELS:
+        raise MessageFormatError(f"observation layout labels must be {list(OBSERVATION_LABELS)}, got {list(labels)}")
+    sizes = tuple(int(d.size) for d in dims)
+    if shape is not None and sizes != tuple(shape):
+        raise MessageFormatError(f"observation must have sizes {list(shape)}, got {list(sizes)}")
+    strides = tuple(int(d.stride) for d in dims)
+    if strides != _strides(sizes):
+        raise MessageFormatError(
+            f"observation strides must be row-major {list(_strides(sizes))}, got {list(strides)}"
+        )
+    if msg.layout.data_offset != 0:
+        raise MessageFormatError(f"observation data_offset must be 0, got {msg.layout.data_offset}")
+    data = np.frombuffer(msg.data, dtype=np.uint8)
+    if data.size != strides[0]:
+        raise MessageFormatError(f"observation data has {data.size} bytes, layout needs {strides[0]}")
+    return data.reshape(sizes)

@@ -1,0 +1,73 @@
+"""Interoperability: the third-party `rosbags` reader opens our bags and decodes every message."""
+import json
+
+import numpy as np
+import pytest
+from rosbags.rosbag2 import Reader
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+from bag_support import make_episodes
+from gscan_ros.data.bag import write_bag
+from gscan_ros.data.bag_schema import TOPICS, message_definition
+
+TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory):
+    episodes = make_episodes(6, seed=3)
+    bag_dir = tmp_path_factory.mktemp("rosbags") / "bag"
+    write_bag(bag_dir, episodes, include_images=True)
+    return bag_dir, episodes
+
+
+def test_rosbags_accepts_metadata_and_lists_topics(recorded):
+    bag_dir, episodes = recorded
+    steps = sum(len(e.actions) + 1 for e in episodes)
+    with Reader(bag_dir) as reader:
+        topics = {c.topic: (c.msgtype, c.msgcount) for c in reader.connections}
+        assert reader.message_count == len(episodes) + 3 * steps
+        assert all(c.msgdef.data for c in reader.connections)  # ros2msg schema text from the MCAP
+        assert all(c.digest.startswith("RIHS01_") for c in reader.connections)
+    assert topics == {
+        "/command": ("std_msgs/msg/String", len(episodes)),
+        "/observation": ("std_msgs/msg/UInt8MultiArray", steps),
+        "/world_image": ("sensor_msgs/msg/Image", steps),
+        "/action": ("std_msgs/msg/String", steps),
+    }
+
+
+def test_rosbags_decodes_the_recorded_values(recorded):
+    bag_dir, episodes = recorded
+    commands, observations, actions = [], [], []
+    with Reader(bag_dir) as reader:
+        for connection, _, raw in reader.messages():
+            msg = TYPESTORE.deserialize_cdr(raw, connection.msgtype)
+            if connection.topic == "/command":
+                commands.append(json.loads(msg.data))
+            elif connection.topic == "/observation":
+                assert [(d.label, d.size, d.stride) for d in msg.layout.dim] == [
+                    ("row", 6, 576),
+                    ("col", 6, 96),
+                    ("channel", 16, 16),
+                ]
+                observations.append(np.asarray(msg.data, dtype=np.uint8).reshape(6, 6, 16))
+            elif connection.topic == "/action":
+                actions.append(msg.data)
+            else:
+                assert (msg.encoding, msg.step) == ("rgb8", 3 * msg.width)
+    assert [c["command"] for c in commands] == [e.command for e in episodes]
+    assert [c["split"] for c in commands] == [e.split for e in episodes]
+    assert [c["situation"] for c in commands] == [e.situation.to_json() for e in episodes]
+    assert np.array_equal(np.stack(observations), np.concatenate([e.states() for e in episodes]))
+    assert actions == [tok for e in episodes for tok in [a.token for a in e.actions] + ["<eos>"]]
+
+
+@pytest.mark.parametrize("topic", sorted(TOPICS))
+def test_schema_text_matches_the_rosbags_type_definitions(topic):
+    """Our ros2msg text (read from the installed .msg files) parses to the same types as rosbags'."""
+    msg_type = TOPICS[topic].msg_type
+    parsed = get_types_from_msg(message_definition(msg_type), msg_type)
+    for name, (consts, fields) in parsed.items():
+        reference = TYPESTORE.fielddefs[name]
+        assert [f[0] for f in fields] == [f[0] for f in reference[1]], name

@@ -1,0 +1,149 @@
+"""Round trips and layout checks of the observation / image / attention / action adapters."""
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+from rclpy.serialization import deserialize_message, serialize_message
+from sensor_msgs.msg import Image
+from std_msgs.msg import MultiArrayDimension, String, UInt8MultiArray
+
+from gscan_ros.errors import GscanError, InvalidActionError
+from gscan_ros.world.types import Action
+from msg_adapters import (
+    MessageFormatError,
+    action_to_msg,
+    attention_to_msg,
+    image_to_msg,
+    msg_to_action,
+    msg_to_attention,
+    msg_to_image,
+    msg_to_observation,
+    observation_to_msg,
+)
+
+observations = arrays(np.uint8, (6, 6, 16), elements=st.integers(0, 1))
+
+
+@settings(max_examples=30)
+@given(observations)
+def test_observation_round_trips_through_cdr(obs):
+    msg = deserialize_message(serialize_message(observation_to_msg(obs)), UInt8MultiArray)
+    assert np.array_equal(msg_to_observation(msg), obs)
+
+
+def test_observation_layout_is_row_col_channel():
+    msg = observation_to_msg(np.zeros((6, 6, 16), np.uint8))
+    assert [(d.label, d.size, d.stride) for d in msg.layout.dim] == [
+        ("row", 6, 576),
+        ("col", 6, 96),
+        ("channel", 16, 16),
+    ]
+    assert msg.layout.data_offset == 0
+
+
+def _with_dims(dims, data_len=576):
+    msg = UInt8MultiArray()
+    msg.layout.dim = [MultiArrayDimension(label=l, size=s, stride=t) for l, s, t in dims]
+    msg.data = bytes(data_len)
+    return msg
+
+
+@pytest.mark.parametrize(
+    "dims, data_len, problem",
+    [
+        ([("col", 6, 576), ("row", 6, 96), ("channel", 16, 16)], 576, "labels"),
+        ([("row", 6, 576), ("col", 6, 96)], 576, "labels"),
+        ([("row", 5, 480), ("col", 6, 96), ("channel", 16, 16)], 480, "sizes"),
+        ([("row", 6, 576), ("col", 6, 16), ("channel", 16, 1)], 576, "strides"),
+        ([("row", 6, 576), ("col", 6, 96), ("channel", 16, 16)], 500, "bytes"),
+    ],
+)
+def test_observation_rejects_wrong_layout(dims, data_len, problem):
+    with pytest.raises(MessageFormatError, match=problem):
+        msg_to_observation(_with_dims(dims, data_len))
+
+
+def test_observation_rejects_non_uint8_arrays():
+    with pytest.raises(MessageFormatError):
+        observation_to_msg(np.zeros((6, 6, 16), np.float32))
+    assert issubclass(MessageFormatError, GscanError)
+
+
+@settings(max_examples=20)
+@given(arrays(np.uint8, st.tuples(st.integers(1, 20), st.integers(1, 20), st.just(3))))
+def test_rgb_image_round_trips(rgb):
+    msg = deserialize_message(serialize_message(image_to_msg(rgb)), Image)
+    assert (msg.encoding, msg.height, msg.width, msg.step) == ("rgb8", rgb.shape[0], rgb.shape[1], 3 * rgb.shape[1])
+    assert np.array_equal(msg_to_image(msg), rgb)
+
+
+def test_rgb_image_with_row_padding_is_cropped():
+    rgb = np.arange(2 * 3 * 3, dtype=np.uint8).reshape(2, 3, 3)
+    msg = image_to_msg(rgb)
+    padded = np.zeros((2, 12), np.uint8)
+    padded[:, :9] = rgb.reshape(2, 9)
+    msg.step, msg.data = 12, padded.tobytes()
+    assert np.array_equal(msg_to_image(msg), rgb)
+
+
+def test_image_rejects_wrong_encoding_and_size():
+    msg = image_to_msg(np.zeros((4, 4, 3), np.uint8))
+    msg.encoding = "bgr8"
+    with pytest.raises(MessageFormatError, match="encoding"):
+        msg_to_image(msg)
+    msg = image_to_msg(np.zeros((4, 4, 3), np.uint8))
+    msg.height = 5
+    with pytest.raises(MessageFormatError, match="bytes"):
+        msg_to_image(msg)
+
+
+@settings(max_examples=30)
+@given(
+    arrays(np.float32, (6, 6), elements=st.floats(0, 1, width=32)),
+    st.integers(1, 12),
+)
+def test_attention_round_trip_is_max_normalized(weights, upsample):
+    msg = attention_to_msg(weights, upsample=upsample)
+    assert (msg.encoding, msg.height, msg.width) == ("mono8", 6 * upsample, 6 * upsample)
+    back = msg_to_attention(deserialize_message(serialize_message(msg), Image))
+    peak = weights.max()
+    expected = weights / peak if peak > 0 else weights
+    assert back.dtype == np.float32
+    assert np.allclose(back, expected, atol=0.5 / 255 + 1e-6)
+
+
+def test_attention_peak_is_white_and_blocks_are_constant():
+    weights = np.zeros((6, 6), np.float32)
+    weights[2, 3] = 0.25
+    pixels = np.frombuffer(attention_to_msg(weights, upsample=4).data, np.uint8).reshape(24, 24)
+    assert pixels[8:12, 12:16].min() == 255
+    assert pixels.sum() == 255 * 16
+
+
+@pytest.mark.parametrize(
+    "weights, upsample",
+    [(np.full((6, 6), -0.1), 2), (np.full((6, 6), np.nan), 2), (np.zeros((6, 6, 1)), 2), (np.zeros((6, 6)), 0)],
+)
+def test_attention_rejects_bad_input(weights, upsample):
+    with pytest.raises(MessageFormatError):
+        attention_to_msg(weights, upsample=upsample)
+
+
+def test_attention_rejects_non_square_image():
+    msg = attention_to_msg(np.ones((6, 6)), upsample=2)
+    msg.width, msg.step, msg.data = 6, 6, bytes(72)
+    with pytest.raises(MessageFormatError, match="square"):
+        msg_to_attention(msg)
+
+
+@pytest.mark.parametrize("action", list(Action))
+def test_action_round_trips(action):
+    msg = deserialize_message(serialize_message(action_to_msg(action)), String)
+    assert msg_to_action(msg) is action
+
+
+def test_eos_token_and_unknown_token():
+    assert action_to_msg(Action.EOS).data == "<eos>"
+    with pytest.raises(InvalidActionError, match="jump"):
+        msg_to_action(String(data="jump"))

@@ -1,0 +1,175 @@
+"""Dataset generation end to end: sampling rules, splits, determinism, CLIs."""
+import json
+from collections import Counter
+
+import numpy as np
+import pytest
+
+from gscan_ros.cli import main
+from gscan_ros.data.commands import parse_command
+from gscan_ros.data.dataset import iter_examples, read_header
+from gscan_ros.data.generate import GenerationConfig, generate_dataset
+from gscan_ros.data.sampling import (
+    ALL_OBJECTS,
+    DIAGONAL_DIRECTIONS,
+    STRAIGHT_DIRECTIONS,
+    ObjectSpec,
+    possible_targets,
+    sample_placements,
+)
+from gscan_ros.data.splits import held_out_splits
+from gscan_ros.world import resolve_target
+
+N = 2500
+
+
+@pytest.fixture(scope="module")
+def compositional(tmp_path_factory):
+    out = tmp_path_factory.mktemp("compositional")
+    report = generate_dataset(out, GenerationConfig(seed=7, max_examples=N, k_shot=3), workers=1)
+    examples = list(iter_examples(report.path))
+    return report, examples
+
+
+def test_placements_cover_directions_and_distances():
+    layouts = sample_placements(np.random.default_rng(0), 6, 5)
+    per_direction = Counter(p.direction for p in layouts)
+    assert all(per_direction[d] == 17 for d in STRAIGHT_DIRECTIONS)
+    assert all(per_direction[d] == 41 for d in DIAGONAL_DIRECTIONS)
+    for p in layouts:
+        dr, dc = p.target.row - p.agent.row, p.target.col - p.agent.col
+        assert abs(dr) + abs(dc) == p.distance
+        assert 0 <= p.agent.row < 6 and 0 <= p.target.col < 6
+        assert ("n" in p.direction) == (dr < 0) and ("e" in p.direction) == (dc > 0)
+        assert (1 <= p.distance <= 5) if len(p.direction) == 1 else (2 <= p.distance <= 10)
+        assert len(p.direction) == 1 or (dr != 0 and dc != 0)
+
+
+def test_possible_targets():
+    assert {t.size for t in possible_targets(parse_command("walk to a small circle"))} == {1, 2, 3}
+    assert {t.size for t in possible_targets(parse_command("walk to a big circle"))} == {2, 3, 4}
+    assert len(possible_targets(parse_command("walk to a circle"))) == 16
+    assert len(possible_targets(parse_command("walk to a red big circle"))) == 3
+    assert len(ALL_OBJECTS) == 48
+
+
+def test_candidate_and_split_counts_match_released(compositional):
+    report, _ = compositional
+    assert report.candidates == 835_200 and report.dropped_multiple_rules == 97_731
+
+
+def test_situations_follow_the_generator_rules(compositional):
+    _, examples = compositional
+    expected_count = {(False, False): 2, (True, False): 6, (False, True): 12, (True, True): 12}
+    for _, _, e in examples:
+        command, s = parse_command(e.tokens), e.situation
+        assert len(s.placed_objects) == expected_count[bool(command.color), bool(command.size)]
+        assert s.agent_direction == 0
+        assert s.agent_position not in {o.position for o in s.placed_objects}
+        assert resolve_target(s, command.frame) == s.target_object  # unique referent
+        assert e.derivation == command.derivation and e.referred_target == command.referred_target
+        if command.size:  # an obligatory comparison object of the target's color and shape
+            assert any(o != s.target_object and o.shape == command.noun and o.color == s.target_object.color
+                       for o in s.placed_objects)
+
+
+def test_split_membership_follows_rules(compositional):
+    report, examples = compositional
+    k_shot = set(read_header(report.path).extra["gscan_ros"]["k_shot_train_indices"])
+    assert len(k_shot) == 3
+    for split, index, e in examples:
+        t = e.situation.target_object
+        rules = held_out_splits(parse_command(e.tokens), ObjectSpec(t.size, t.color, t.shape),
+                                e.situation.direction_to_target)
+        if split == "train" and index in k_shot:
+            assert rules == ("adverb_1",)
+        elif split in ("train", "dev", "test"):
+            assert rules == ()
+        else:
+            assert rules == (split,)
+    sizes = report.split_sizes
+    assert sizes["test"] > 0 and sizes["dev"] > 0 and all(sizes[k] > 0 for k in ("visual", "adverb_2"))
+
+
+def test_no_test_example_equivalent_to_train(compositional):
+    _, examples = compositional
+
+    def key(e):
+        return e.command, e.target_commands, e.situation.target_object.position
+
+    train = {key(e) for split, _, e in examples if split == "train"}
+    assert not any(key(e) in train for split, _, e in examples if split == "test")
+
+
+def test_same_seed_same_bytes_any_worker_count(compositional, tmp_path):
+    report, _ = compositional
+    again = generate_dataset(tmp_path, GenerationConfig(seed=7, max_examples=N, k_shot=3), workers=2)
+    assert again.path.read_bytes() == report.path.read_bytes()
+    other = generate_dataset(tmp_path / "other", GenerationConfig(seed=8, max_examples=N, k_shot=3))
+    assert other.path.read_bytes() != report.path.read_bytes()
+
+
+def test_length_split(tmp_path):
+    report = generate_dataset(tmp_path, GenerationConfig(seed=1, split_kind="length", max_examples=1500))
+    header = read_header(report.path)
+    assert header.extra["gscan_ros"]["cut_off_target_length"] == 15
+    seen = Counter()
+    for split, _, e in iter_examples(report.path):
+        seen[split] += 1
+        assert not parse_command(e.tokens).adverb
+        assert ("stay" not in [a.token for a in e.target_commands])
+        assert (len(e.target_commands) > 15) == (split == "target_lengths")
+    assert set(seen) == {"train", "dev", "test", "target_lengths"}
+
+
+def test_cli_generate_then_verify_reports_no_mismatch(tmp_path, capsys):
+    assert main(["generate", "--out", str(tmp_path), "--examples", "300", "--seed", "2",
+                 "--workers", "1", "--quiet"]) == 0
+    assert main(["verify", str(tmp_path), "--quiet"]) == 0
+    assert "0 mismatch(es)" in capsys.readouterr().out
+
+
+def test_cli_verify_reports_a_wrong_target(tmp_path, capsys):
+    generate_dataset(tmp_path, GenerationConfig(seed=4, max_examples=50))
+    data = json.loads((tmp_path / "dataset.txt").read_text())
+    example = data["examples"]["train"][0]
+    example["target_commands"] = "stay," + example["target_commands"]
+    (tmp_path / "dataset.txt").write_text(json.dumps(data))
+    assert main(["verify", str(tmp_path), "--quiet"]) == 1
+    out = capsys.readouterr().out
+    assert "MISMATCH example 0 of split 'train'" in out and "differs at step 0" in out
+    assert "verified 50 examples: 1 mismatch(es)" in out
+
+
+def test_cli_errors_are_one_line(tmp_path, capsys):
+    (tmp_path / "dataset.txt").write_text('{"examples": {"train": [{"command": "walk,to,a,circle"}]}}')
+    assert main(["verify", str(tmp_path), "--quiet"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err == "gscan-ros verify: error: example 0 of split 'train': field 'situation': missing"
+    assert main(["generate", "--out", str(tmp_path), "--examples", "0"]) == 1
+    assert "--examples must be positive" in capsys.readouterr().err
+
+
+def test_cli_render_png_and_gif(compositional, tmp_path):
+    report, _ = compositional
+    from PIL import Image
+
+    assert main(["render", str(report.path), "--split", "adverb_1", "--index", "1",
+                 "--out", str(tmp_path / "a.gif")]) == 0
+    assert main(["render", str(report.path), "--split", "train", "--out", str(tmp_path / "a.png")]) == 0
+    assert Image.open(tmp_path / "a.gif").n_frames > 1
+    assert Image.open(tmp_path / "a.png").size[0] > 0
+    assert main(["render", str(report.path), "--split", "train", "--index", "100000",
+                 "--out", str(tmp_path / "b.png")]) == 1
+
+
+def test_mcap_format_holds_the_same_episodes(tmp_path):
+    config = GenerationConfig(seed=5, max_examples=60)
+    txt = generate_dataset(tmp_path / "txt", config)
+    generate_dataset(tmp_path / "bags", config, fmt="mcap")
+    from gscan_ros.data.io import iter_episodes
+
+    expected = [e for e in iter_episodes(txt.path) if e.split == "train"]
+    got = list(iter_episodes(tmp_path / "bags" / "train"))
+    assert [(e.command, e.situation, e.actions) for e in got] == \
+        [(e.command, e.situation, e.actions) for e in expected]

@@ -1,0 +1,65 @@
+"""Closed-loop evaluation throughput: batched (many live episodes per forward) vs batch 1.
+
+    .venv/bin/python bench/evaluate.py [--checkpoint CKPT] [--data DIR] [--episodes 512] [--threads 2]
+
+Defaults: the shipped model and 3000 freshly generated candidate examples (seed 0);
+episodes from the `test` split. The model decides when episodes stop, so a trained
+checkpoint gives realistic episode lengths (an untrained one runs all 121 iterations).
+"""
+from __future__ import annotations
+
+import argparse
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--checkpoint", help="checkpoint (default: the shipped model)")
+    ap.add_argument("--data", help="dataset (default: generate 3000 candidates into a temp dir)")
+    ap.add_argument("--split", default="test")
+    ap.add_argument("--episodes", type=int, default=512)
+    ap.add_argument("--single-episodes", type=int, default=64, help="episodes for the batch-1 measurement")
+    ap.add_argument("--batch-size", type=int, default=256)
+    ap.add_argument("--threads", type=int, default=2)
+    args = ap.parse_args()
+
+    import torch
+
+    from gscan_ros.data.io import iter_episodes
+    from gscan_ros.model.policy import Policy
+    from gscan_ros.training.evaluate import evaluate_episodes
+
+    torch.set_num_threads(args.threads)
+    policy = Policy.from_checkpoint(args.checkpoint)
+    with tempfile.TemporaryDirectory() as tmp:
+        data = args.data
+        if data is None:
+            data = tmp
+            subprocess.run([sys.executable, "-m", "gscan_ros.cli", "generate", "--out", tmp, "--examples", "3000",
+                            "--seed", "0", "--workers", "1", "--quiet"], check=True)
+        episodes = []
+        for ep in iter_episodes(data, [args.split]):
+            episodes.append(ep)
+            if len(episodes) >= args.episodes:
+                break
+    rates = {}
+    for label, eps, batch in (("batched", episodes, args.batch_size),
+                              ("batch 1", episodes[: args.single_episodes], 1)):
+        evaluate_episodes(policy, eps[: min(8, len(eps))], batch_size=batch)  # warm-up
+        start = time.time()
+        res = evaluate_episodes(policy, eps, batch_size=batch)
+        seconds = time.time() - start
+        steps = sum(len(p.actions) + 1 for p in res.predictions)
+        rates[label] = len(eps) / seconds
+        print(f"{label:8s} {rates[label]:8.1f} episodes/s  ({steps / seconds:.0f} decoding steps/s, {len(eps)} episodes, "
+              f"batch {batch}, exact match {res.exact_match:.1f} %, threads {args.threads})")
+    print(f"batched / batch-1 ratio: {rates['batched'] / rates['batch 1']:.1f}")
+    print(f"peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,90 @@
+"""Training throughput: examples/s and peak RSS, mixed batches vs the original one-command batches.
+
+    .venv/bin/python bench/train.py [--data DIR] [--updates 6] [--threads 2]
+
+Without --data, a dataset of 6000 candidate examples is generated into a temp dir
+(seed 0; gSCAN-length episodes, ~14 actions on average). Each mode runs in its own
+child process, so each peak RSS is that mode's alone (states cache included).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+
+
+def measure(data: str, mode: str, updates: int, threads: int, batch_size: int) -> dict:
+    import numpy as np
+    import torch
+
+    from gscan_ros.language.registry import get_parser
+    from gscan_ros.training.batches import EpisodeStore, batch_order
+    from gscan_ros.training.config import TrainConfig
+    from gscan_ros.training.trainer import load_split, make_lexicon, new_model
+
+    torch.set_num_threads(threads)
+    torch.manual_seed(0)
+    lexicon = make_lexicon("wordnet")
+    parser = get_parser("semantic", lexicon)
+    t0 = time.time()
+    store = EpisodeStore(load_split(data, "train"), parser)
+    cache_s = time.time() - t0
+    model = new_model(TrainConfig(), parser, lexicon, store).train()
+    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
+    order = batch_order(store, batch_size, mode, np.random.default_rng(0))
+    if mode == "per_command":  # the original's full 200-episode single-command chunks where possible
+        order = sorted(order, key=len, reverse=True)
+    examples, steps, elapsed = 0, 0, 0.0
+    for i, ids in enumerate(order[: updates + 1]):
+        start = time.time()
+        out = model.teacher_forcing(store.batch(ids, model.table))
+        opt.zero_grad()
+        out.loss.backward()
+        opt.step()
+        if i:  # the first update warms up allocators
+            elapsed += time.time() - start
+            examples += len(ids)
+            steps += int(store.lengths[ids].sum())
+    return {"mode": mode, "threads": threads, "updates": updates, "examples": examples,
+            "examples_per_s": examples / elapsed, "steps_per_s": steps / elapsed,
+            "mean_batch": examples / updates, "mean_episode_steps": steps / examples,
+            "train_episodes": len(store), "state_cache_s": round(cache_s, 2),
+            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", help="dataset (default: generate 6000 candidates into a temp dir)")
+    ap.add_argument("--updates", type=int, default=6)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--batch-size", type=int, default=200)
+    ap.add_argument("--mode", choices=("mixed", "per_command"), help="(internal) measure one mode in this process")
+    args = ap.parse_args()
+    if args.mode:
+        print(json.dumps(measure(args.data, args.mode, args.updates, args.threads, args.batch_size)))
+        return
+    with tempfile.TemporaryDirectory() as tmp:
+        data = args.data
+        if data is None:
+            data = tmp
+            subprocess.run([sys.executable, "-m", "gscan_ros.cli", "generate", "--out", tmp, "--examples", "6000",
+                            "--seed", "0", "--workers", "1", "--quiet"], check=True)
+        results = {}
+        for mode in ("mixed", "per_command"):
+            cmd = [sys.executable, __file__, "--data", data, "--mode", mode, "--updates", str(args.updates),
+                   "--threads", str(args.threads), "--batch-size", str(args.batch_size)]
+            results[mode] = json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout)
+    for mode, r in results.items():
+        print(f"{mode:12s} {r['examples_per_s']:7.1f} examples/s  ({r['steps_per_s']:.0f} steps/s, mean batch "
+              f"{r['mean_batch']:.0f}, {r['mean_episode_steps']:.1f} steps/episode)  peak RSS {r['peak_rss_mb']:.0f} MB"
+              f"  [threads {r['threads']}, state cache {r['state_cache_s']} s for {r['train_episodes']} episodes]")
+    ratio = results["mixed"]["examples_per_s"] / results["per_command"]["examples_per_s"]
+    print(f"mixed / per_command throughput ratio: {ratio:.2f}")
+
+
+if __name__ == "__main__":
+    main()

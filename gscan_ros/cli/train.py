@@ -1,0 +1,32 @@
+"""`gscan-ros train`: train a compositional network (or the seq2seq baseline) on a dataset."""
+from __future__ import annotations
+
+import argparse
+import json
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "train",
+        help="train a model on a generated dataset",
+        description="Teacher-forced training with periodic closed-loop validation. Settings come from "
+        "a YAML config (fields of TrainConfig, model settings under 'model:') and --set overrides.",
+    )
+    p.add_argument("--config", metavar="FILE", help="YAML training config (default: built-in defaults)")
+    p.add_argument("--data", required=True, metavar="DIR", help="dataset directory/file (dataset.txt or bags)")
+    p.add_argument("--out", default="runs/train", metavar="RUN_DIR", help="run directory (default: runs/train)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a config key, e.g. --set batch_size=100 --set model.rnn_dim=40")
+    p.add_argument("--resume", action="store_true", help="continue from RUN_DIR/last.pt")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from gscan_ros.training.config import TrainConfig
+    from gscan_ros.training.trainer import train
+
+    cfg = TrainConfig.load(args.config, args.overrides)
+    result = train(cfg, args.data, args.out, resume=args.resume, progress=not args.quiet)
+    print(json.dumps(result, indent=2))
+    return 0

@@ -1,0 +1,141 @@
+"""Checkpoints: one plain dict, loadable with `torch.load(..., weights_only=True)`.
+
+Layout (format 1)::
+
+    {"format": 1, "kind": "compositional" | "seq2seq",
+     "model_config": {...}, "vocabulary": {...}, "lexicon": {...}, "parser": "semantic",
+     "state_dict": {...}, "step": int, "metrics": {...},
+     # training checkpoints only (stripped from shipped models):
+     "train_config": {...}, "optimizer": {...}, "rng": {...}}
+
+Configs and vocabularies are stored as plain dicts/lists, never pickled objects, so a
+checkpoint never executes code on load. A checkpoint whose tensors or vocabulary do not
+fit the model it is loaded into raises `CheckpointError` naming the mismatch.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from gscan_ros.errors import CheckpointError, LexiconError
+from gscan_ros.language.lexicon import Lexicon
+
+FORMAT = 1
+KINDS = ("compositional", "seq2seq")
+
+
+def build_model(kind: str, model_config: dict, vocabulary: dict) -> nn.Module:
+    """A fresh model of `kind` from plain-dict config and vocabulary."""
+    if kind == "compositional":
+        from gscan_ros.model.compositional import CompositionalNetwork, ModelConfig, ModuleTable
+
+        return CompositionalNetwork(ModelConfig.from_dict(model_config), ModuleTable.from_list(vocabulary["modules"]))
+    if kind == "seq2seq":
+        from gscan_ros.model.seq2seq import Seq2Seq, Seq2SeqConfig
+
+        return Seq2Seq(Seq2SeqConfig.from_dict(model_config), list(vocabulary["tokens"]))
+    raise CheckpointError(f"unknown model kind {kind!r}; expected one of {KINDS}")
+
+
+def model_kind(model: nn.Module) -> str:
+    from gscan_ros.model.compositional import CompositionalNetwork
+
+    return "compositional" if isinstance(model, CompositionalNetwork) else "seq2seq"
+
+
+def model_vocabulary(model: nn.Module) -> dict:
+    if model_kind(model) == "compositional":
+        return {"modules": model.table.to_list()}
+    return {"tokens": list(model.tokens)}
+
+
+def checkpoint_dict(model: nn.Module, *, parser: str, lexicon: Lexicon, step: int, metrics: dict,
+                    **training_state) -> dict:
+    return {
+        "format": FORMAT,
+        "kind": model_kind(model),
+        "model_config": model.cfg.to_dict(),
+        "vocabulary": model_vocabulary(model),
+        "lexicon": lexicon.to_dict(),
+        "parser": parser,
+        "state_dict": {k: v.detach().clone() for k, v in model.state_dict().items()},
+        "step": int(step),
+        "metrics": dict(metrics),
+        **training_state,
+    }
+
+
+def save_checkpoint(path: str | os.PathLike, ckpt: dict) -> None:
+    """Write atomically (temp file + rename), so an interrupted save never corrupts `path`."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    torch.save(ckpt, tmp)
+    os.replace(tmp, path)
+
+
+def read_checkpoint(path: str | os.PathLike) -> dict:
+    """The raw checkpoint dict; CheckpointError if missing, unreadable or of another format."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {str(path)!r} does not exist")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises many types for corrupt/unsafe files
+        raise CheckpointError(f"cannot read checkpoint {str(path)!r}: {type(exc).__name__}: {exc}") from None
+    if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
+        raise CheckpointError(f"{str(path)!r} is not a gscan_ros checkpoint of format {FORMAT}")
+    missing = [k for k in ("kind", "model_config", "vocabulary", "lexicon", "parser", "state_dict") if k not in ckpt]
+    if missing:
+        raise CheckpointError(f"checkpoint {str(path)!r} lacks {missing}")
+    return ckpt
+
+
+def restore_model(ckpt: dict, model: nn.Module | None = None) -> nn.Module:
+    """Load the checkpoint's weights into `model` (built from the checkpoint when None).
+
+    With a given model, its kind, config and vocabulary must equal the checkpoint's.
+    """
+    if model is None:
+        model = build_model(ckpt["kind"], ckpt["model_config"], ckpt["vocabulary"])
+    else:
+        if model_kind(model) != ckpt["kind"]:
+            raise CheckpointError(f"checkpoint holds a {ckpt['kind']} model, not a {model_kind(model)} model")
+        if model.cfg.to_dict() != ckpt["model_config"]:
+            diff = sorted(k for k, v in model.cfg.to_dict().items() if ckpt["model_config"].get(k) != v)
+            raise CheckpointError(f"checkpoint model config differs from the model's in {diff}")
+        if model_vocabulary(model) != ckpt["vocabulary"]:
+            raise CheckpointError(_vocabulary_diff(model_vocabulary(model), ckpt["vocabulary"]))
+    state = ckpt["state_dict"]
+    own = model.state_dict()
+    for key, value in own.items():
+        if key not in state:
+            raise CheckpointError(f"checkpoint lacks tensor {key!r}")
+        if tuple(state[key].shape) != tuple(value.shape):
+            raise CheckpointError(
+                f"tensor {key!r} has shape {tuple(state[key].shape)} in the checkpoint, {tuple(value.shape)} in the model"
+            )
+    extra = sorted(set(state) - set(own))
+    if extra:
+        raise CheckpointError(f"checkpoint has tensors the model lacks: {extra[:5]}")
+    model.load_state_dict(state)
+    return model
+
+
+def checkpoint_lexicon(ckpt: dict) -> Lexicon:
+    try:
+        return Lexicon.from_dict(ckpt["lexicon"])
+    except LexiconError as exc:
+        raise CheckpointError(f"checkpoint lexicon: {exc}") from None
+
+
+def _vocabulary_diff(mine: dict, theirs: dict) -> str:
+    def keys(v: dict) -> set[str]:
+        return {m["key"] for m in v.get("modules", [])} | set(v.get("tokens", []))
+
+    only_model, only_ckpt = sorted(keys(mine) - keys(theirs)), sorted(keys(theirs) - keys(mine))
+    detail = f"model-only {only_model[:5]}, checkpoint-only {only_ckpt[:5]}" if only_model or only_ckpt else "arity/heads differ"
+    return f"checkpoint vocabulary does not match the model's ({detail})"

@@ -1,0 +1,102 @@
+"""Policy: a trained model plus the parser it was trained with, acting one step at a time.
+
+The ROS policy node uses exactly `from_checkpoint`, `parser_name`, `reset(graph)` and
+`step(observation)`; batched closed-loop evaluation uses `rollout(graphs)`.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from gscan_ros.errors import CheckpointError, GraphError
+from gscan_ros.language.graph import CommandGraph
+from gscan_ros.language.lexicon import Lexicon
+from gscan_ros.model.checkpoint import checkpoint_lexicon, read_checkpoint, restore_model
+from gscan_ros.world.types import Action, GRID_SIZE
+
+DEFAULT_CHECKPOINT = "default_model.pt"
+
+
+def default_checkpoint_path() -> Path:
+    """The model shipped inside the package (`gscan_ros/assets/default_model.pt`)."""
+    return Path(str(resources.files("gscan_ros") / "assets" / DEFAULT_CHECKPOINT))
+
+
+@dataclass
+class StepOutput:
+    action: Action
+    attention: dict[str, np.ndarray] = field(default_factory=dict)  # node word -> float32[6, 6]
+
+
+class Policy:
+    """Model + parser name + lexicon; stateful single-episode stepping for the ROS node."""
+
+    def __init__(self, model: nn.Module, parser_name: str = "semantic", lexicon: Lexicon | None = None,
+                 metadata: dict | None = None):
+        self.model = model.eval()
+        self._parser_name = parser_name
+        self.lexicon = lexicon if lexicon is not None else Lexicon.none()
+        self.metadata = metadata or {}
+        self._parser = None
+        self._rollout = None
+
+    @classmethod
+    def from_checkpoint(cls, path: str | os.PathLike | None = None) -> "Policy":
+        """Load a checkpoint (None: the shipped default model); CheckpointError if unusable."""
+        ckpt = read_checkpoint(default_checkpoint_path() if path is None else path)
+        model = restore_model(ckpt)
+        meta = {"step": ckpt.get("step", 0), "metrics": ckpt.get("metrics", {}), "kind": ckpt["kind"]}
+        return cls(model, str(ckpt["parser"]), checkpoint_lexicon(ckpt), meta)
+
+    @property
+    def parser_name(self) -> str:
+        return self._parser_name
+
+    @property
+    def parser(self):
+        """The parser the model was trained with (built lazily; uses the checkpoint's lexicon)."""
+        if self._parser is None:
+            from gscan_ros.language.registry import get_parser
+
+            self._parser = get_parser(self._parser_name, self.lexicon)
+        return self._parser
+
+    def parse(self, command: str) -> CommandGraph:
+        return self.parser.parse(command)
+
+    @torch.no_grad()
+    def rollout(self, graphs: list[CommandGraph]):
+        """A batched closed-loop decoder for `graphs` (see `compositional.Rollout`)."""
+        return self.model.rollout(graphs)
+
+    # ---- single-episode API (ROS policy node)
+    def reset(self, graph: CommandGraph) -> None:
+        """Start an episode; GraphError if the graph needs modules the model does not have."""
+        if graph.parser != self._parser_name:
+            raise GraphError(f"graph comes from the {graph.parser!r} parser; this model expects {self._parser_name!r}")
+        self._rollout = self.rollout([graph])
+
+    @torch.no_grad()
+    def step(self, observation: np.ndarray) -> StepOutput:
+        """One decoding step on uint8[6, 6, 16]: the argmax action (or EOS) and each word's map."""
+        if self._rollout is None:
+            raise GraphError("Policy.step called before reset(graph)")
+        obs = np.asarray(observation)
+        expected = (GRID_SIZE, GRID_SIZE, getattr(self.model.cfg, "in_channels", 16))
+        if obs.shape != expected:
+            raise CheckpointError(f"observation has shape {obs.shape}; the model expects {expected}")
+        logits, maps = self._rollout.step(obs[None].astype(np.uint8, copy=False))
+        action = Action(int(logits[0].argmax()))
+        self._rollout.advance(logits.argmax(-1))
+        attention = {}
+        if maps is not None:
+            g = int(np.sqrt(maps.shape[-1]))
+            for slot, word in self._rollout.words[0]:
+                attention[word] = maps[0, slot].reshape(g, g).numpy().astype(np.float32)
+        return StepOutput(action, attention)

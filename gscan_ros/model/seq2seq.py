@@ -1,0 +1,178 @@
+"""The gSCAN seq2seq baseline (Ruis et al. 2020; GSCAN_SPEC §9), in the same framework.
+
+Command: embedding -> 1-layer BiLSTM (directions summed). World: the same 3-branch CNN,
+on the *initial* state only (the baseline never sees later states). Decoder: an LSTM
+fed the previous action, with additive (Bahdanau) attention over the command and
+attention over the 36 cells conditioned on the command context. Teacher forcing feeds
+gold previous actions; closed-loop decoding feeds its own.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from gscan_ros.errors import CheckpointError, CommandError
+from gscan_ros.model.compositional import ModelConfig, TeacherOutput, VisualEncoder, sparse_states
+from gscan_ros.world.types import Action
+
+
+def command_vocabulary() -> list[str]:
+    """The 18 gSCAN command tokens ("while spinning" is one token)."""
+    from gscan_ros.language.tokens import VOCABULARY
+
+    return sorted(VOCABULARY)
+
+
+@dataclass(frozen=True)
+class Seq2SeqConfig:
+    """Hyper-parameters of the baseline (defaults: MM `all_experiments.sh`)."""
+
+    embedding_dim: int = 25
+    """Command-token and previous-action embedding width."""
+    hidden: int = 100
+    """Encoder (per direction, summed) and decoder LSTM width."""
+    dropout: float = 0.3
+    """Dropout on embeddings and decoder outputs."""
+    cnn_kernels: tuple[int, ...] = (1, 5, 7)
+    """Kernel sizes of the shared-design visual encoder."""
+    cnn_channels: int = 50
+    """Channels per conv branch."""
+    cnn_dropout: float = 0.1
+    """Dropout on the cell features."""
+    num_actions: int = len(Action)
+    """Output classes: six actions + EOS (`Action` values)."""
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["cnn_kernels"] = list(self.cnn_kernels)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Seq2SeqConfig":
+        unknown = sorted(set(d) - {f.name for f in fields(cls)})
+        if unknown:
+            raise CheckpointError(f"unknown seq2seq config keys {unknown}")
+        return cls(**{**d, "cnn_kernels": tuple(d.get("cnn_kernels", (1, 5, 7)))})
+
+
+class _Additive(nn.Module):
+    def __init__(self, query: int, key: int, hidden: int):
+        super().__init__()
+        self.q, self.k, self.v = nn.Linear(query, hidden), nn.Linear(key, hidden, bias=False), nn.Linear(hidden, 1)
+
+    def forward(self, query, keys, mask=None):
+        score = self.v(torch.tanh(self.q(query)[:, None] + self.k(keys)))[..., 0]
+        if mask is not None:
+            score = score.masked_fill(~mask, float("-inf"))
+        weights = torch.softmax(score, -1)
+        return torch.bmm(weights[:, None], keys)[:, 0], weights
+
+
+class Seq2Seq(nn.Module):
+    def __init__(self, cfg: Seq2SeqConfig, tokens: list[str]):
+        super().__init__()
+        self.cfg, self.tokens = cfg, list(tokens)
+        self.index = {t: i + 1 for i, t in enumerate(self.tokens)}  # 0 = padding
+        E, H = cfg.embedding_dim, cfg.hidden
+        self.embed = nn.Embedding(len(self.tokens) + 1, E, padding_idx=0)
+        self.encoder = nn.LSTM(E, H, batch_first=True, bidirectional=True)
+        self.visual = VisualEncoder(ModelConfig(cnn_kernels=cfg.cnn_kernels, cnn_channels=cfg.cnn_channels,
+                                                cnn_dropout=cfg.cnn_dropout))
+        self.visual_proj = nn.Linear(self.visual.cfg.feature_dim, H)
+        self.action_embed = nn.Embedding(cfg.num_actions + 1, E)  # last id = start of sequence
+        self.decoder = nn.LSTMCell(E + 2 * H, H)
+        self.text_att = _Additive(H, H, H)
+        self.world_att = _Additive(2 * H, H, H)
+        self.out = nn.Linear(3 * H, cfg.num_actions)
+        self.drop = nn.Dropout(cfg.dropout)
+
+    @property
+    def sos(self) -> int:
+        return self.cfg.num_actions
+
+    def encode_commands(self, commands: list[str]) -> tuple[torch.Tensor, torch.Tensor]:
+        from gscan_ros.language.tokens import tokenize
+
+        ids = []
+        for c in commands:
+            toks = tokenize(c)
+            unknown = [t for t in toks if t not in self.index]
+            if unknown:
+                raise CommandError(f"tokens {unknown} are not in the model's vocabulary")
+            ids.append([self.index[t] for t in toks])
+        width = max(len(i) for i in ids)
+        padded = torch.tensor([i + [0] * (width - len(i)) for i in ids])
+        mask = padded > 0
+        out, _ = self.encoder(self.drop(self.embed(padded)))
+        H = self.cfg.hidden
+        return out[..., :H] + out[..., H:], mask
+
+    def _start(self, commands, first_states):
+        text, mask = self.encode_commands(commands)
+        world = self.visual_proj(self.visual(*sparse_states(first_states)))
+        n, H = len(commands), self.cfg.hidden
+        return {"text": text, "mask": mask, "world": world, "h": text.new_zeros(n, H), "c": text.new_zeros(n, H)}
+
+    def _decode(self, st, prev):
+        text_ctx, _ = self.text_att(st["h"], st["text"], st["mask"])
+        world_ctx, world_w = self.world_att(torch.cat([st["h"], text_ctx], -1), st["world"])
+        x = torch.cat([self.drop(self.action_embed(prev)), text_ctx, world_ctx], -1)
+        st["h"], st["c"] = self.decoder(x, (st["h"], st["c"]))
+        return self.out(self.drop(torch.cat([st["h"], text_ctx, world_ctx], -1))), world_w
+
+    def make_batch(self, store, ids) -> dict:
+        """Teacher-forcing inputs from an EpisodeStore: commands, initial states, targets."""
+        ids = np.asarray(ids)
+        first = np.stack([store.episodes[i].states()[0] for i in ids])
+        targets = [store.actions[store.ep_ptr[i] : store.ep_ptr[i + 1]] for i in ids]
+        T = max(len(t) for t in targets)
+        tgt = torch.full((len(ids), T), -1, dtype=torch.long)
+        for b, t in enumerate(targets):
+            tgt[b, : len(t)] = torch.from_numpy(t)
+        return {"commands": [store.episodes[i].command for i in ids], "first": first, "targets": tgt}
+
+    def teacher_forcing(self, batch: dict) -> TeacherOutput:
+        st = self._start(batch["commands"], batch["first"])
+        targets = batch["targets"]
+        prev = torch.full((len(targets),), self.sos, dtype=torch.long)
+        logits = []
+        for t in range(targets.shape[1]):
+            out, _ = self._decode(st, prev)
+            logits.append(out)
+            prev = targets[:, t].clamp(min=0)
+        logits_t = torch.stack(logits, 1)
+        valid = targets >= 0
+        nll = F.cross_entropy(logits_t[valid], targets[valid], reduction="none")
+        per_example = torch.zeros(len(targets)).index_add(0, valid.nonzero()[:, 0], nll) / valid.sum(1)
+        return TeacherOutput(per_example.mean(), logits_t[valid], nll, torch.zeros_like(nll))
+
+    def rollout(self, graphs) -> "Seq2SeqRollout":
+        return Seq2SeqRollout(self, [g.command for g in graphs])
+
+
+class Seq2SeqRollout:
+    """Closed-loop decoding: the first observation is encoded, later ones are ignored."""
+
+    def __init__(self, model: Seq2Seq, commands: list[str]):
+        self.model, self.commands, self.state = model, commands, None
+        self.prev = torch.full((len(commands),), model.sos, dtype=torch.long)
+        self.words = [[] for _ in commands]  # no per-word attention maps
+
+    def step(self, observations: np.ndarray):
+        if self.state is None:
+            self.state = self.model._start(self.commands, observations)
+        logits, _ = self.model._decode(self.state, self.prev)
+        return logits, None
+
+    def advance(self, actions: torch.Tensor) -> None:
+        self.prev = actions.clone()
+
+    def keep(self, rows: torch.Tensor) -> None:
+        self.state = {k: v.index_select(0, rows) for k, v in self.state.items()}
+        self.prev = self.prev.index_select(0, rows)
+        self.commands = [self.commands[i] for i in rows.tolist()]
+        self.words = [self.words[i] for i in rows.tolist()]

@@ -1,0 +1,129 @@
+"""Teacher-forcing data: parse graphs, a compact per-dataset state cache, batch samplers.
+
+Teacher forcing needs all T+1 world states of every episode (initial + after each gold
+action, GSCAN_SPEC §8.2). They are replayed once per dataset through the one World
+physics (`Episode.states()`) and kept as the *set-bit indices* of each one-hot state
+(int16, ~20 per state instead of 576 bytes, ~40 bytes per state), which is both the
+cache and the direct input of the sparse visual encoder.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Iterator, Sequence
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from gscan_ros.data.episode import Episode
+from gscan_ros.language.graph import CommandGraph
+from gscan_ros.model.compositional import Layout, ModuleTable, TeacherBatch
+from gscan_ros.world.types import Action
+
+BATCHING = ("mixed", "per_command")
+
+
+class EpisodeStore:
+    """Episodes + their graphs + cached states and actions, addressable by episode index."""
+
+    def __init__(self, episodes: Sequence[Episode], parser, progress: bool = False, chunk: int = 4096):
+        self.episodes = list(episodes)
+        graphs: dict[str, CommandGraph] = {}
+        self.graphs = [graphs.setdefault(ep.command, parser.parse(ep.command)) for ep in self.episodes]
+        self.lengths = np.array([len(ep.actions) + 1 for ep in self.episodes], dtype=np.int64)  # + EOS
+        self.ep_ptr = np.zeros(len(self.episodes) + 1, dtype=np.int64)
+        self.ep_ptr[1:] = np.cumsum(self.lengths)  # states per episode = T + 1 = length
+        self.actions = np.array([int(a) for ep in self.episodes for a in (*ep.actions, Action.EOS)], dtype=np.int64)
+        bits, counts = [], []
+        it = range(0, len(self.episodes), chunk)
+        for start in tqdm(it, desc="caching states", unit="chunk", disable=not progress):
+            states = np.concatenate([ep.states() for ep in self.episodes[start : start + chunk]])
+            flat = states.reshape(len(states), -1)
+            if flat.max(initial=0) > 1:
+                raise ValueError("observations must be one-hot (0/1) encodings")
+            rows, cols = np.nonzero(flat)
+            bits.append(cols.astype(np.int16))
+            counts.append(np.bincount(rows, minlength=len(flat)))
+        self.bits = np.concatenate(bits) if bits else np.zeros(0, np.int16)
+        counts_all = np.concatenate(counts) if counts else np.zeros(0, np.int64)
+        self.state_ptr = np.zeros(len(counts_all) + 1, dtype=np.int64)
+        self.state_ptr[1:] = np.cumsum(counts_all)
+
+    def __len__(self) -> int:
+        return len(self.episodes)
+
+    def graph_table(self, lexicon=None) -> ModuleTable:
+        return ModuleTable.from_graphs(self.graphs, lexicon)
+
+    def batch(self, ids: Sequence[int], table: ModuleTable, quantum: int = 32) -> TeacherBatch:
+        """A TeacherBatch of episodes `ids`: rows sorted by length, packed time-major, the
+        number of rows computed per step rounded up to a multiple of `quantum`."""
+        ids = np.asarray(ids, dtype=np.int64)
+        ids = ids[np.argsort(-self.lengths[ids], kind="stable")]
+        lengths = self.lengths[ids]
+        t_max = int(lengths[0])
+        alive = np.array([(lengths > t).sum() for t in range(t_max)])
+        active = np.minimum(-(-alive // quantum) * quantum, len(ids))
+        rows = np.concatenate([np.arange(n) for n in active])
+        steps = np.repeat(np.arange(t_max), active)
+        valid = steps < lengths[rows]
+        state_ids = np.where(valid, self.ep_ptr[ids[rows]] + steps, -1)
+        starts = np.where(valid, self.state_ptr[state_ids], 0)
+        counts = np.where(valid, self.state_ptr[state_ids + 1] - starts, 0)  # padded: empty grid
+        offsets = np.zeros(len(state_ids), dtype=np.int64)
+        offsets[1:] = np.cumsum(counts)[:-1]
+        gather = np.repeat(starts - offsets, counts) + np.arange(int(counts.sum()))
+        return TeacherBatch(
+            layout=Layout([self.graphs[i] for i in ids], table),
+            indices=torch.from_numpy(self.bits[gather].astype(np.int64)),
+            offsets=torch.from_numpy(offsets),
+            targets=torch.from_numpy(np.where(valid, self.actions[state_ids], -1)),
+            rows=torch.from_numpy(rows),
+            valid=torch.from_numpy(valid),
+            lengths=torch.from_numpy(lengths.astype(np.float32)),
+            active=[int(n) for n in active],
+            episode_ids=ids,
+        )
+
+
+def batch_order(store: EpisodeStore, batch_size: int, batching: str, rng: np.random.Generator) -> list[np.ndarray]:
+    """One epoch of batches.
+
+    mixed: a random permutation cut into batches (graphs of any commands mixed).
+    per_command: the original scheme (GSCAN_SPEC §8.2, quirk Q9) — batches hold one command,
+    each command's episodes reshuffled every epoch (the original fixed chunk contents
+    after one initial shuffle), then the order of all chunks shuffled.
+    """
+    if batching == "mixed":
+        perm = rng.permutation(len(store))
+        return [perm[i : i + batch_size] for i in range(0, len(perm), batch_size)]
+    if batching == "per_command":
+        by_command: dict[str, list[int]] = {}
+        for i, ep in enumerate(store.episodes):
+            by_command.setdefault(ep.command, []).append(i)
+        chunks = []
+        for command in sorted(by_command):
+            idx = rng.permutation(np.asarray(by_command[command]))
+            chunks += [idx[i : i + batch_size] for i in range(0, len(idx), batch_size)]
+        return [chunks[i] for i in rng.permutation(len(chunks))]
+    raise ValueError(f"batching must be one of {BATCHING}, got {batching!r}")
+
+
+@dataclass
+class EpochCursor:
+    """Where training stands in the (seeded, reproducible) stream of batches."""
+
+    epoch: int = 0
+    batch: int = 0
+
+
+def iterate_batches(store: EpisodeStore, batch_size: int, batching: str, seed: int,
+                    cursor: EpochCursor) -> Iterator[tuple[EpochCursor, np.ndarray]]:
+    """Endless batches; epoch e uses rng(seed, e), so resuming at `cursor` replays nothing."""
+    while True:
+        order = batch_order(store, batch_size, batching, np.random.default_rng([seed, cursor.epoch]))
+        while cursor.batch < len(order):
+            ids = order[cursor.batch]
+            cursor = EpochCursor(cursor.epoch, cursor.batch + 1)
+            yield cursor, ids
+        cursor = EpochCursor(cursor.epoch + 1, 0)

@@ -1,0 +1,146 @@
+"""Batched closed-loop evaluation and the gSCAN metrics (GSCAN_SPEC §8.5, §10).
+
+The model acts, the one `World` executes, the new state is encoded and fed back — for
+many episodes at once: one batched forward over every live episode per decoding step,
+finished episodes dropped from the batch. An episode stops at EOS or after
+`max_steps + 1` decoding iterations (121, like the original's `max_decoding_steps`).
+An action the world rejects (`InvalidActionError`) stays in the prediction and leaves
+the world unchanged.
+"""
+from __future__ import annotations
+
+from collections import defaultdict
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from gscan_ros.data.episode import Episode
+from gscan_ros.errors import InvalidActionError
+from gscan_ros.model.policy import Policy
+from gscan_ros.world.types import Action
+from gscan_ros.world.world import World
+
+MAX_STEPS = 120
+SPLIT_LETTERS = {
+    "test": "A", "visual_easier": "B", "visual": "C", "situational_1": "D", "situational_2": "E",
+    "contextual": "F", "adverb_1": "G", "adverb_2": "H", "target_lengths": "I",
+}
+
+
+def token_accuracy(predicted: Sequence, gold: Sequence) -> float:
+    """% of aligned positions that agree; the shorter sequence never matches past its end (§10)."""
+    longest = max(len(predicted), len(gold))
+    if longest == 0:
+        return 100.0
+    same = sum(1 for p, g in zip(predicted, gold) if p == g)
+    return 100.0 * same / longest
+
+
+@dataclass
+class Prediction:
+    episode: Episode
+    actions: list[Action]
+    attention: dict[str, list[np.ndarray]] | None = None  # word -> one float32[36] map per step
+
+    @property
+    def token_accuracy(self) -> float:
+        return token_accuracy(self.actions, self.episode.actions)
+
+    @property
+    def exact_match(self) -> bool:
+        return list(self.actions) == list(self.episode.actions)
+
+
+@dataclass
+class EvalResult:
+    predictions: list[Prediction] = field(default_factory=list)
+
+    def summary(self) -> dict:
+        """Per split: examples, exact match %, token accuracy %, exact match per target length."""
+        by_split: dict[str, list[Prediction]] = defaultdict(list)
+        for p in self.predictions:
+            by_split[p.episode.split].append(p)
+        out = {}
+        for split in sorted(by_split, key=lambda s: (SPLIT_LETTERS.get(s, "~"), s)):
+            preds = by_split[split]
+            by_len: dict[int, list[Prediction]] = defaultdict(list)
+            for p in preds:
+                by_len[len(p.episode.actions)].append(p)  # quirk Q8: each failure counts for its own length
+            out[split] = {
+                "letter": SPLIT_LETTERS.get(split, ""),
+                "examples": len(preds),
+                "exact_match": _pct(p.exact_match for p in preds),
+                "token_accuracy": float(np.mean([p.token_accuracy for p in preds])),
+                "by_target_length": {
+                    str(n): {"examples": len(ps), "exact_match": _pct(p.exact_match for p in ps)}
+                    for n, ps in sorted(by_len.items())
+                },
+            }
+        return out
+
+    @property
+    def exact_match(self) -> float:
+        return _pct(p.exact_match for p in self.predictions)
+
+    @property
+    def token_accuracy(self) -> float:
+        return float(np.mean([p.token_accuracy for p in self.predictions])) if self.predictions else 0.0
+
+
+def _pct(flags) -> float:
+    flags = list(flags)
+    return 100.0 * sum(flags) / len(flags) if flags else 0.0
+
+
+@torch.no_grad()
+def evaluate_episodes(model_or_policy, episodes: Sequence[Episode], batch_size: int = 256,
+                      max_steps: int = MAX_STEPS, record_attention: bool = False, parser: str = "semantic",
+                      progress: bool = False) -> EvalResult:
+    """Closed-loop decode `episodes`, `batch_size` at a time. A bare model is wrapped in a
+    Policy with `parser` (and no lexicon)."""
+    policy = model_or_policy if isinstance(model_or_policy, Policy) else Policy(model_or_policy, parser)
+    was_training = policy.model.training
+    policy.model.eval()
+    result = EvalResult()
+    try:
+        for start in tqdm(range(0, len(episodes), batch_size), desc="evaluating", unit="batch", disable=not progress):
+            result.predictions += _decode_batch(policy, episodes[start : start + batch_size], max_steps, record_attention)
+    finally:
+        policy.model.train(was_training)
+    return result
+
+
+def _decode_batch(policy: Policy, episodes: Sequence[Episode], max_steps: int, record: bool) -> list[Prediction]:
+    graphs = [policy.parse(ep.command) for ep in episodes]
+    rollout = policy.rollout(graphs)
+    worlds = [World(ep.situation) for ep in episodes]
+    preds = [Prediction(ep, [], {} if record else None) for ep in episodes]
+    live = list(range(len(episodes)))
+    eos = int(Action.EOS)
+    for _ in range(max_steps + 1):
+        logits, maps = rollout.step(np.stack([worlds[i].encode() for i in live]))
+        chosen = logits.argmax(-1)
+        rollout.advance(chosen)
+        if record and maps is not None:
+            for row, i in enumerate(live):
+                for slot, word in rollout.words[row]:
+                    preds[i].attention.setdefault(word, []).append(maps[row, slot].numpy())
+        keep = []
+        for row, (i, action) in enumerate(zip(live, chosen.tolist())):
+            if action == eos:
+                continue
+            preds[i].actions.append(Action(action))
+            try:
+                worlds[i].step(Action(action))
+            except InvalidActionError:
+                pass  # kept in the prediction; the world stays as it was
+            keep.append(row)
+        if not keep:
+            break
+        if len(keep) < len(live):
+            rollout.keep(torch.tensor(keep))
+            live = [live[r] for r in keep]
+    return preds

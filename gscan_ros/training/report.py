@@ -1,0 +1,58 @@
+"""Evaluation outputs: results JSON, a Markdown table, and a gSCAN-format predictions file."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from gscan_ros.training.evaluate import EvalResult
+
+
+def markdown_table(summary: dict, title: str = "") -> str:
+    """One row per split (letter, key, examples, exact match %, token accuracy %)."""
+    lines = [f"## {title}", ""] if title else []
+    lines += ["| split | key | examples | exact match % | token accuracy % |", "|---|---|---:|---:|---:|"]
+    for split, s in summary.items():
+        lines.append(f"| {s['letter'] or '-'} | {split} | {s['examples']} | {s['exact_match']:.2f} | {s['token_accuracy']:.2f} |")
+    return "\n".join(lines) + "\n"
+
+
+def prediction_records(result: EvalResult):
+    """gSCAN prediction-file entries (GSCAN_SPEC §6.2), CG variant: `attention_weights` is a
+    dict word -> one 36-value map per decoding step."""
+    for p in result.predictions:
+        ep = p.episode
+        yield {
+            "input": _tokens(ep.command),
+            "prediction": [a.token for a in p.actions],
+            "target": [a.token for a in ep.actions],
+            "derivation": ep.meta.get("derivation", ""),
+            "situation": ep.situation.to_json(),
+            "attention_weights": {w: [[round(float(v), 5) for v in m] for m in maps]
+                                  for w, maps in (p.attention or {}).items()},
+            "accuracy": p.token_accuracy,
+            "exact_match": p.exact_match,
+            "split": ep.split,
+            "example_id": ep.example_id,
+        }
+
+
+def _tokens(command: str) -> list[str]:
+    from gscan_ros.language.tokens import tokenize
+
+    return list(tokenize(command))
+
+
+def write_reports(out_dir: str | Path, result: EvalResult, meta: dict, predictions: bool = True) -> dict:
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    summary = result.summary()
+    doc = {**meta, "splits": summary}
+    (out / "results.json").write_text(json.dumps(doc, indent=2))
+    (out / "results.md").write_text(markdown_table(summary, meta.get("title", "")))
+    if predictions:
+        with open(out / "predictions.json", "w") as f:
+            f.write("[\n")
+            for i, rec in enumerate(prediction_records(result)):
+                f.write((",\n" if i else "") + json.dumps(rec))
+            f.write("\n]\n")
+    return doc

@@ -1,0 +1,241 @@
+"""The training loop: teacher forcing on world states, Adam, periodic closed-loop validation.
+
+A run directory holds `config.yaml` (resolved), `metrics.jsonl` (one JSON object per
+log line / validation), `learning_curve.png`, `last.pt` (with optimizer + RNG state, for
+`--resume`), `best.pt` (best dev exact match) and `model.pt` (best.pt without training
+state: the file to ship or evaluate).
+"""
+from __future__ import annotations
+
+import json
+import logging
+import random
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import yaml
+from tqdm import tqdm
+
+from gscan_ros.errors import CheckpointError, DatasetFormatError
+from gscan_ros.language.lexicon import Lexicon
+from gscan_ros.model.checkpoint import (build_model, checkpoint_dict, read_checkpoint, restore_model,
+                                        save_checkpoint)
+from gscan_ros.model.compositional import ModuleTable
+from gscan_ros.model.policy import Policy
+from gscan_ros.training.batches import EpisodeStore, EpochCursor, iterate_batches
+from gscan_ros.training.config import TrainConfig
+from gscan_ros.training.evaluate import evaluate_episodes
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class RunFiles:
+    root: Path
+
+    def __post_init__(self) -> None:
+        self.root.mkdir(parents=True, exist_ok=True)
+
+    config = property(lambda self: self.root / "config.yaml")
+    metrics = property(lambda self: self.root / "metrics.jsonl")
+    curve = property(lambda self: self.root / "learning_curve.png")
+    last = property(lambda self: self.root / "last.pt")
+    best = property(lambda self: self.root / "best.pt")
+    model = property(lambda self: self.root / "model.pt")
+
+
+def seed_everything(seed: int) -> dict:
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+    return {"python": seed, "numpy": seed, "torch": seed}
+
+
+def make_lexicon(name: str) -> Lexicon:
+    return Lexicon.from_wordnet() if name == "wordnet" else Lexicon.none()
+
+
+def module_table(parser, lexicon: Lexicon, extra_graphs=()) -> ModuleTable:
+    """Modules of every gSCAN command (675) plus the training graphs, so words that never
+    occur in training (e.g. 'cautiously' at k=0) still have a (random) module."""
+    from gscan_ros.language.grammar import all_commands
+
+    graphs = [parser.parse(c) for c in all_commands()]
+    return ModuleTable.from_graphs([*graphs, *extra_graphs], lexicon)
+
+
+def new_model(cfg: TrainConfig, parser, lexicon: Lexicon, store: EpisodeStore):
+    if cfg.model_kind == "compositional":
+        table = module_table(parser, lexicon, store.graphs)
+        return build_model("compositional", cfg.model_config().to_dict(), {"modules": table.to_list()})
+    from gscan_ros.model.seq2seq import command_vocabulary
+
+    return build_model("seq2seq", cfg.model_config().to_dict(), {"tokens": command_vocabulary()})
+
+
+def load_split(data: str, split: str, limit: int = 0):
+    from gscan_ros.data.io import iter_episodes
+
+    out = []
+    for ep in iter_episodes(data, [split]):
+        out.append(ep)
+        if limit and len(out) >= limit:
+            break
+    return out
+
+
+def train(cfg: TrainConfig, data: str, out_dir: str | Path, resume: bool = False, progress: bool = True) -> dict:
+    """Train per `cfg` on dataset `data`; returns the final metrics dict."""
+    files = RunFiles(Path(out_dir))
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    seeds = seed_everything(cfg.seed)
+    lexicon = make_lexicon(cfg.lexicon)
+    from gscan_ros.language.registry import get_parser
+
+    parser = get_parser(cfg.parser, lexicon)
+    t0 = time.time()
+    train_eps = load_split(data, cfg.train_split, cfg.max_train_examples)
+    if not train_eps:
+        raise DatasetFormatError(f"dataset {data!r} has no {cfg.train_split!r} episodes")
+    dev_eps = load_split(data, cfg.dev_split)
+    if cfg.max_dev_examples and len(dev_eps) > cfg.max_dev_examples:
+        pick = np.random.default_rng(cfg.seed).choice(len(dev_eps), cfg.max_dev_examples, replace=False)
+        dev_eps = [dev_eps[i] for i in sorted(pick)]
+    store = EpisodeStore(train_eps, parser, progress=progress)
+    model = new_model(cfg, parser, lexicon, store)
+    optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr, betas=(0.9, 0.999))
+    step, cursor, best, elapsed_before = 0, EpochCursor(), -1.0, 0.0
+    if resume:
+        if not files.last.exists():
+            raise CheckpointError(f"--resume: no checkpoint at {files.last}")
+        ckpt = read_checkpoint(files.last)
+        if ckpt.get("parser") != cfg.parser:
+            raise CheckpointError(f"--resume: checkpoint was trained with parser {ckpt.get('parser')!r}, config says {cfg.parser!r}")
+        restore_model(ckpt, model)
+        optimizer.load_state_dict(ckpt["optimizer"])
+        step = int(ckpt["step"])
+        cursor = EpochCursor(**ckpt["cursor"])
+        best = float(ckpt["best_dev_exact_match"])
+        elapsed_before = float(ckpt.get("elapsed_s", 0.0))
+        _restore_rng(ckpt["rng"])
+    files.config.write_text(yaml.safe_dump(cfg.to_dict(), sort_keys=False))
+    n_params = sum(p.numel() for p in model.parameters())
+    _append(files.metrics, {"event": "start", "step": step, "seeds": seeds, "train_examples": len(store),
+                            "dev_examples": len(dev_eps), "parameters": n_params, "resumed": resume,
+                            "data_load_s": round(time.time() - t0, 2), "config": cfg.to_dict()})
+    policy = Policy(model, cfg.parser, lexicon)
+
+    def checkpoint(path: Path, metrics: dict, training_state: bool) -> None:
+        extra = {}
+        if training_state:
+            extra = {"train_config": cfg.to_dict(), "optimizer": optimizer.state_dict(), "rng": _rng_state(),
+                     "cursor": {"epoch": cursor.epoch, "batch": cursor.batch}, "best_dev_exact_match": best,
+                     "elapsed_s": elapsed_before + time.time() - start}
+        save_checkpoint(path, checkpoint_dict(model, parser=cfg.parser, lexicon=lexicon, step=step,
+                                              metrics=metrics, **extra))
+
+    def validate() -> dict:
+        nonlocal best
+        res = evaluate_episodes(policy, dev_eps, batch_size=cfg.eval_batch_size)
+        metrics = {"step": step, "dev_exact_match": res.exact_match, "dev_token_accuracy": res.token_accuracy,
+                   "dev_examples": len(dev_eps)}
+        model.train()
+        if res.exact_match > best or not files.best.exists():
+            best = max(best, res.exact_match)
+            checkpoint(files.best, metrics, training_state=False)
+        _append(files.metrics, {"event": "validation", **metrics})
+        plot_learning_curve(files.metrics, files.curve)
+        return metrics
+
+    start = time.time()
+    model.train()
+    window = {"loss": 0.0, "examples": 0, "t": time.time(), "n": 0}
+    bar = tqdm(total=cfg.max_updates, initial=step, desc="training", unit="upd", disable=not progress)
+    last_metrics: dict = {}
+    batches = iterate_batches(store, cfg.batch_size, cfg.batching, cfg.seed, cursor)
+    budget_s = cfg.max_minutes * 60.0
+    while step < cfg.max_updates:
+        cursor, ids = next(batches)
+        out = model.teacher_forcing(store.batch(ids, model.table) if cfg.model_kind == "compositional"
+                                    else model.make_batch(store, ids))
+        optimizer.zero_grad(set_to_none=True)
+        out.loss.backward()
+        optimizer.step()
+        step += 1
+        bar.update(1)
+        window["loss"] += float(out.loss.detach())
+        window["examples"] += len(ids)
+        window["n"] += 1
+        if step % cfg.log_every == 0:
+            now = time.time()
+            rate = window["examples"] / max(now - window["t"], 1e-9)
+            line = {"event": "train", "step": step, "epoch": cursor.epoch, "loss": window["loss"] / window["n"],
+                    "examples_per_s": rate, "elapsed_s": elapsed_before + now - start}
+            _append(files.metrics, line)
+            bar.set_postfix(loss=f"{line['loss']:.3f}", ex_s=f"{rate:.0f}")
+            window = {"loss": 0.0, "examples": 0, "t": now, "n": 0}
+        out_of_time = budget_s and elapsed_before + time.time() - start >= budget_s
+        if step % cfg.validate_every == 0 or step == cfg.max_updates or out_of_time:
+            last_metrics = validate()
+        if step % cfg.checkpoint_every == 0 or step == cfg.max_updates or out_of_time:
+            checkpoint(files.last, last_metrics, training_state=True)
+        if out_of_time:
+            break
+    bar.close()
+    if not last_metrics or last_metrics.get("step") != step:
+        last_metrics = validate()
+        checkpoint(files.last, last_metrics, training_state=True)
+    best_ckpt = read_checkpoint(files.best)
+    save_checkpoint(files.model, {k: v for k, v in best_ckpt.items()})
+    _append(files.metrics, {"event": "end", "step": step, "best_dev_exact_match": best,
+                            "elapsed_s": elapsed_before + time.time() - start})
+    return {"step": step, "best_dev_exact_match": best, **last_metrics}
+
+
+def _rng_state() -> dict:
+    return {"python": list(random.getstate()[1]), "python_version": random.getstate()[0],
+            "python_gauss": random.getstate()[2], "torch": torch.get_rng_state()}
+
+
+def _restore_rng(state: dict) -> None:
+    random.setstate((state["python_version"], tuple(state["python"]), state["python_gauss"]))
+    torch.set_rng_state(state["torch"])
+
+
+def _append(path: Path, record: dict) -> None:
+    with open(path, "a") as f:
+        f.write(json.dumps(record) + "\n")
+
+
+def plot_learning_curve(metrics_path: Path, png_path: Path) -> None:
+    """Training loss and dev exact match against updates, from metrics.jsonl."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    train, val = [], []
+    for line in Path(metrics_path).read_text().splitlines():
+        rec = json.loads(line)
+        if rec.get("event") == "train":
+            train.append((rec["step"], rec["loss"]))
+        elif rec.get("event") == "validation":
+            val.append((rec["step"], rec["dev_exact_match"]))
+    fig, ax = plt.subplots(figsize=(7, 4))
+    if train:
+        ax.plot(*zip(*train), color="tab:blue", label="train loss")
+    ax.set_xlabel("updates")
+    ax.set_ylabel("loss (NLL + antonym overlap per step)")
+    ax2 = ax.twinx()
+    if val:
+        ax2.plot(*zip(*val), "o-", color="tab:orange", label="dev exact match")
+    ax2.set_ylabel("dev exact match (%)")
+    ax2.set_ylim(0, 100)
+    fig.legend(loc="upper right")
+    fig.tight_layout()
+    fig.savefig(png_path, dpi=100)
+    plt.close(fig)

@@ -1,0 +1,84 @@
+"""Synthetic parse graphs and one-hot states for model tests (no parser or world needed)."""
+from __future__ import annotations
+
+import numpy as np
+
+from gscan_ros.language.graph import CommandGraph, GraphEdge, GraphNode
+from gscan_ros.model.compositional import ModuleSpec, ModuleTable
+
+SIZE_KEY = "big|small"
+
+
+def chain(words: list[str], command: str | None = None) -> CommandGraph:
+    """A semantic-style chain: words[0](words[1](...)); 'big'/'small' share SIZE_KEY."""
+    nodes = []
+    for i, w in enumerate(words):
+        module, head = (SIZE_KEY, ("big", "small").index(w)) if w in ("big", "small") else (w, 0)
+        nodes.append(GraphNode(i, w, module, 1 if i + 1 < len(words) else 0, head))
+    edges = [GraphEdge(i, i + 1, "arg", 0) for i in range(len(words) - 1)]
+    return CommandGraph.build(command or " ".join(words), "semantic", nodes, edges, 0)
+
+
+def binary() -> CommandGraph:
+    """A constituency-style graph with a two-slot module: VP_2(push, NP_2(red, circle))."""
+    nodes = [GraphNode(0, "VP", "VP_2", 2), GraphNode(1, "push", "push_leaf", 0),
+             GraphNode(2, "NP", "NP_2", 2), GraphNode(3, "red", "red_leaf", 0), GraphNode(4, "circle", "circle", 0)]
+    edges = [GraphEdge(0, 1, "verb", 0), GraphEdge(0, 2, "obj", 1), GraphEdge(2, 3, "amod", 0),
+             GraphEdge(2, 4, "head", 1)]
+    return CommandGraph.build("push a red circle", "constituency", nodes, edges, 0)
+
+
+GRAPHS = [
+    chain(["walk", "circle"]),
+    chain(["while spinning", "walk", "red", "small", "circle"]),
+    chain(["push", "big", "square"]),
+    chain(["pull", "green", "cylinder"]),
+    chain(["cautiously", "walk", "small", "square"]),
+]
+
+
+def table(graphs=GRAPHS) -> ModuleTable:
+    base = ModuleTable.from_graphs(graphs)
+    return ModuleTable(
+        ModuleSpec(s.key, s.arity, 2, ((0, 1),)) if s.key == SIZE_KEY else s for s in base.specs
+    )
+
+
+def random_states(rng: np.random.Generator, n: int) -> np.ndarray:
+    """n one-hot gSCAN-like encodings: a few objects (size, shape, color bits) + agent + heading."""
+    out = np.zeros((n, 6, 6, 16), dtype=np.uint8)
+    for i in range(n):
+        cells = rng.choice(36, size=rng.integers(2, 8), replace=False)
+        for c in cells[1:]:
+            r, col = divmod(int(c), 6)
+            out[i, r, col, rng.integers(0, 4)] = 1
+            out[i, r, col, 4 + rng.integers(0, 3)] = 1
+            out[i, r, col, 7 + rng.integers(0, 4)] = 1
+        r, col = divmod(int(cells[0]), 6)
+        out[i, r, col, 11] = 1
+        out[i, r, col, 12 + rng.integers(0, 4)] = 1
+    return out
+
+
+def walk_episodes(n: int, seed: int = 0, max_distance: int = 3):
+    """n real walk episodes ("walk to a <color> <shape>", 2 objects, short routes), planned
+    by the world's own planner."""
+    from gscan_ros.data.episode import Episode
+    from gscan_ros.world.planner import demonstrate
+    from gscan_ros.world.types import COLORS, SHAPES, Heading, Position, Situation, WorldObject
+
+    rng = np.random.default_rng(seed)
+    out = []
+    while len(out) < n:
+        cells = rng.choice(36, size=3, replace=False)
+        agent, target_cell, other_cell = (Position(*divmod(int(c), 6)) for c in cells)
+        if abs(agent.row - target_cell.row) + abs(agent.col - target_cell.col) > max_distance:
+            continue
+        shape, other_shape = rng.choice(SHAPES, 2, replace=False)
+        color = str(rng.choice(COLORS))
+        target = WorldObject(str(shape), color, int(rng.integers(1, 5)), target_cell)
+        other = WorldObject(str(other_shape), str(rng.choice(COLORS)), int(rng.integers(1, 5)), other_cell)
+        situation = Situation(agent, Heading.EAST, (target, other), target)
+        command = f"walk to a {color} {shape}"
+        out.append(Episode(command, situation, tuple(demonstrate(situation, command)), "train", len(out)))
+    return out

@@ -1,0 +1,57 @@
+"""`gscan-ros train` / `evaluate` end to end on a tiny generated dataset (resume included)."""
+import json
+
+import pytest
+import torch
+
+from gscan_ros.cli import main
+from gscan_ros.model.checkpoint import read_checkpoint
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    out = tmp_path_factory.mktemp("data")
+    assert main(["generate", "--out", str(out), "--examples", "300", "--seed", "0", "--workers", "1", "--quiet"]) == 0
+    return out
+
+
+def run_train(dataset, out, *extra):
+    return main(["train", "--data", str(dataset), "--out", str(out), "--quiet", "--set", "batch_size=16",
+                 "--set", "validate_every=2", "--set", "checkpoint_every=2", "--set", "log_every=1",
+                 "--set", "threads=1", "--set", "max_dev_examples=8", "--set", "lexicon=none", *extra])
+
+
+@pytest.mark.parametrize("kind", ["compositional", "seq2seq"])
+def test_train_resume_evaluate(dataset, tmp_path, kind):
+    torch.set_num_threads(1)
+    run = tmp_path / "run"
+    assert run_train(dataset, run, "--set", "max_updates=2", "--set", f"model_kind={kind}") == 0
+    assert read_checkpoint(run / "last.pt")["step"] == 2
+    assert run_train(dataset, run, "--set", "max_updates=3", "--set", f"model_kind={kind}", "--resume") == 0
+    ckpt = read_checkpoint(run / "last.pt")
+    assert ckpt["step"] == 3 and ckpt["kind"] == kind and ckpt["parser"] == "semantic"
+    events = [json.loads(line)["event"] for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert events.count("start") == 2 and "validation" in events
+    assert (run / "learning_curve.png").stat().st_size > 0
+    out = tmp_path / "eval"
+    assert main(["evaluate", "--checkpoint", str(run / "model.pt"), "--data", str(dataset), "--splits", "test",
+                 "visual", "--max-examples", "5", "--out", str(out), "--quiet", "--threads", "1"]) == 0
+    results = json.loads((out / "results.json").read_text())
+    assert set(results["splits"]) == {"test", "visual"}
+    assert results["splits"]["visual"]["letter"] == "C" and results["splits"]["test"]["examples"] == 5
+    preds = json.loads((out / "predictions.json").read_text())
+    assert len(preds) == 10 and {"input", "prediction", "target", "situation", "attention_weights",
+                                 "accuracy", "exact_match"} <= set(preds[0])
+    assert (out / "results.md").read_text().count("|") > 10
+
+
+def test_resume_with_another_parser_is_refused(dataset, tmp_path, capsys):
+    run = tmp_path / "run"
+    assert run_train(dataset, run, "--set", "max_updates=1") == 0
+    assert run_train(dataset, run, "--set", "max_updates=2", "--set", "parser=dependency", "--resume") == 1
+    assert "parser" in capsys.readouterr().err
+
+
+def test_unknown_config_key_exits_1(dataset, tmp_path, capsys):
+    assert run_train(dataset, tmp_path / "r", "--set", "learning_rate=1") == 1
+    assert "learning_rate" in capsys.readouterr().err

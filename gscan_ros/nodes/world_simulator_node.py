@@ -1,0 +1,127 @@
+"""world_simulator_node: owns the gSCAN world, executes actions, publishes the state.
+
+Lock-step contract with policy_node (docs/ros.md "Lock-step"): every action message
+that is not `<eos>` and not stale gets exactly one `observation` in reply, also when
+it is rejected (the world is then unchanged and the same state is sent again).
+An action whose DDS source timestamp predates the last reset was meant for the old
+world: it is reported on `status` and gets no reply.
+"""
+from __future__ import annotations
+
+import json
+import time
+
+from rclpy.node import Node
+from sensor_msgs.msg import Image
+from std_msgs.msg import String, UInt8MultiArray
+from std_srvs.srv import Trigger
+
+from gscan_ros.data.episode import Episode
+from gscan_ros.errors import GscanError
+from gscan_ros.nodes.common import (
+    ACTION,
+    EVENT_QOS,
+    LATCHED_QOS,
+    OBSERVATION,
+    RESET_WORLD,
+    SITUATION,
+    WORLD_IMAGE,
+    StatusReporter,
+    describe,
+    guarded,
+    quote,
+    run,
+)
+from gscan_ros.data.sources import episode_source
+from gscan_ros.world.types import Action
+from gscan_ros.world.world import World
+from msg_adapters import image_to_msg, msg_to_action, observation_to_msg
+
+
+class WorldSimulatorNode(Node):
+    def __init__(self, **kwargs) -> None:
+        super().__init__("world_simulator_node", **kwargs)
+        dataset = self.declare_parameter(
+            "dataset", "", describe("dataset.txt (or its directory) or a bag directory; empty: sample situations")
+        ).value
+        split = self.declare_parameter("split", "test", describe("dataset split to serve")).value
+        index = self.declare_parameter(
+            "index", 0, describe("first example of the split; each reset takes the next")
+        ).value
+        seed = self.declare_parameter(
+            "seed", 0, describe("first sampling seed when no dataset; each reset adds 1")
+        ).value
+        self._images = self.declare_parameter(
+            "publish_images", True, describe("render and publish world_image after every step", read_only=False)
+        )
+        self.status = StatusReporter(self)
+        self._source = episode_source(dataset, split, index, seed)
+        self._observation_pub = self.create_publisher(UInt8MultiArray, OBSERVATION, LATCHED_QOS)
+        self._situation_pub = self.create_publisher(String, SITUATION, LATCHED_QOS)
+        self._image_pub = self.create_publisher(Image, WORLD_IMAGE, LATCHED_QOS)
+        self._world: World | None = None
+        self._reset_ns = 0
+        self._actions = 0  # actions applied since the last reset or <eos>
+        self.load(self._source.next())  # a bad dataset is a start-up error (run() reports it)
+        self.create_subscription(String, ACTION, self.on_action, EVENT_QOS)
+        self.create_service(Trigger, RESET_WORLD, self.on_reset_world)
+
+    @property
+    def world(self) -> World:
+        """The simulated world (for in-process users: bringup, tests)."""
+        return self._world
+
+    def load(self, episode: Episode) -> str:
+        """Start over in `episode`'s situation and publish it; returns a one-line description."""
+        self._world = World(episode.situation)
+        self._reset_ns = time.time_ns()
+        self._actions = 0
+        self.publish_state()
+        text = f"loaded {self._source.describe(episode)}; its command: {episode.command!r}"
+        self.status.info(text)
+        return text
+
+    def publish_state(self) -> None:
+        """situation, then observation (what the policy waits for), then the slow image.
+
+        Recorders pair an observation with the newest situation published before it.
+        """
+        self._situation_pub.publish(String(data=json.dumps(self._world.snapshot().to_json())))
+        self._observation_pub.publish(observation_to_msg(self._world.encode()))
+        if self._images.value:
+            self._image_pub.publish(image_to_msg(self._world.render()))
+
+    @guarded
+    def on_action(self, msg: String, info: dict) -> None:
+        if info["source_timestamp"] < self._reset_ns:
+            self.status.reject(f"ignored action {quote(msg.data)}: it was sent before the world was reset")
+            return
+        try:
+            action = msg_to_action(msg)
+            if action is Action.EOS:
+                self.status.info(f"episode ended after {self._actions} actions")
+                self._actions = 0
+                return
+            self._world.step(action)
+            self._actions += 1
+        except GscanError as exc:
+            self.status.reject(f"rejected action {quote(msg.data)}: {exc}")
+        self.publish_state()
+
+    def on_reset_world(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        try:
+            response.message = self.load(self._source.next())
+            response.success = True
+        except GscanError as exc:
+            response.message = f"reset failed, world unchanged: {exc}"
+            response.success = False
+            self.status.reject(response.message)
+        return response
+
+
+def main(args: list[str] | None = None) -> int:
+    return run(WorldSimulatorNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

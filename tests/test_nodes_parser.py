@@ -1,0 +1,68 @@
+"""parser_node in-process: graphs for good commands, one status line per bad one, never a crash."""
+import pytest
+from std_msgs.msg import String
+
+from gscan_ros.errors import CheckpointError, CommandError
+from gscan_ros.language import get_parser
+from gscan_ros.nodes.common import EVENT_QOS, LATCHED_LOG_QOS
+from gscan_ros.nodes.harness import Probe, fresh_domain_id
+from gscan_ros.nodes.parser_node import ParserNode
+from msg_adapters import msg_to_graph
+
+from ros_helpers import parameters, tiny_checkpoint
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory):
+    return tiny_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.pt")
+
+
+@pytest.fixture
+def probe():
+    p = Probe(fresh_domain_id())
+    yield p
+    p.close()
+
+
+@pytest.fixture
+def parser(probe, checkpoint):
+    node = ParserNode(context=probe.context, parameter_overrides=parameters(checkpoint=str(checkpoint)))
+    probe.executor.add_node(node)
+    return node
+
+
+def test_command_becomes_the_checkpoint_parsers_graph(probe, parser):
+    graphs = probe.record("command_graph", String, LATCHED_LOG_QOS)
+    parser.on_command(String(data="Walk to a RED circle while spinning"))
+    probe.spin_until(lambda: graphs, what="a command graph")
+    assert msg_to_graph(graphs[0]) == get_parser("semantic").parse("walk to a red circle while spinning")
+
+
+BAD = {
+    "unknown word": ("walk to a purple circle", "unknown word 'purple'"),
+    "empty": ("", "command is empty"),
+    "10 kB": ("x" * 10_000, "longer than max_command_chars=1000"),
+    "10 kB of words": ("walk " * 2_000, "longer than max_command_chars=1000"),
+    "ungrammatical": ("circle a to walk", "not in the gSCAN command grammar"),
+    "control characters": ("walk\x00\x07 to a circle", "rejected command"),
+}
+
+
+def test_each_bad_command_gives_one_short_status_line(probe, parser):
+    status = probe.record("status", String, EVENT_QOS)
+    graphs = probe.record("command_graph", String, LATCHED_LOG_QOS)
+    for text, _ in BAD.values():
+        parser.on_command(String(data=text))
+    probe.spin_until(lambda: len(status) == len(BAD), what=f"{len(BAD)} status lines")
+    for (name, (_, reason)), line in zip(BAD.items(), status):
+        assert line.data.startswith("parser_node: rejected command"), name
+        assert reason in line.data, name
+        assert len(line.data) <= 320 and "\n" not in line.data, name
+    assert graphs == []
+
+
+def test_unknown_parser_or_missing_checkpoint_is_a_start_up_error(probe, checkpoint, tmp_path):
+    with pytest.raises(CommandError):
+        ParserNode(context=probe.context, parameter_overrides=parameters(checkpoint=str(checkpoint), parser="magic"))
+    with pytest.raises(CheckpointError):
+        ParserNode(context=probe.context, parameter_overrides=parameters(checkpoint=str(tmp_path / "none.pt")))

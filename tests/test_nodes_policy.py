@@ -1,0 +1,168 @@
+"""policy_node in-process with a scripted policy: lock-step timing, max_steps, preemption, bad graphs."""
+import time
+
+import numpy as np
+import pytest
+from sensor_msgs.msg import Image
+from std_msgs.msg import String
+
+from gscan_ros.errors import GraphError
+from gscan_ros.language import get_parser
+from gscan_ros.model.policy import StepOutput
+from gscan_ros.nodes.common import EVENT_QOS
+from gscan_ros.nodes.harness import Probe, fresh_domain_id
+from gscan_ros.nodes.policy_node import PolicyNode
+from gscan_ros.world.types import Action
+from msg_adapters import graph_to_msg, msg_to_attention, observation_to_msg
+
+from ros_helpers import parameters, source_info
+
+PARSER = get_parser("semantic")
+
+
+class ScriptedPolicy:
+    """Plays `script` (its last action repeats); records resets and the observations it saw."""
+
+    parser_name = "semantic"
+
+    def __init__(self, script):
+        self.script, self.resets, self.seen, self._t = list(script), [], [], 0
+
+    def reset(self, graph):
+        if graph.parser != self.parser_name:
+            raise GraphError(f"graph comes from the {graph.parser!r} parser")
+        self.resets.append(graph.command)
+        self._t = 0
+
+    def step(self, observation):
+        self.seen.append(np.array(observation))
+        action = self.script[min(self._t, len(self.script) - 1)]
+        self._t += 1
+        eye = np.eye(6, dtype=np.float32)
+        return StepOutput(action, {"red": eye, "while spinning": eye[::-1].copy()})
+
+
+@pytest.fixture
+def probe():
+    p = Probe(fresh_domain_id())
+    yield p
+    p.close()
+
+
+def start(probe, script, **params):
+    policy = ScriptedPolicy(script)
+    node = PolicyNode(policy, context=probe.context, parameter_overrides=parameters(**params))
+    probe.executor.add_node(node)
+    return node, policy
+
+
+def graph(command="walk to a red circle while spinning"):
+    return graph_to_msg(PARSER.parse(command))
+
+
+def observation(value=0):
+    obs = np.zeros((6, 6, 16), dtype=np.uint8)
+    obs[value % 6, value // 6 % 6, 11] = 1
+    return observation_to_msg(obs)
+
+
+def test_acts_only_on_observations_published_after_its_last_action(probe):
+    actions = probe.record("action", String, EVENT_QOS)
+    node, policy = start(probe, [Action.WALK])
+    node.on_graph(graph(), source_info())
+    assert policy.seen == []  # no observation yet
+    node.on_observation(observation(0), source_info())
+    assert len(policy.seen) == 1
+    node.on_observation(observation(1), source_info(t_ns=5))  # older than action 0: in flight or latched
+    assert len(policy.seen) == 1
+    node.on_observation(observation(2), source_info())
+    assert len(policy.seen) == 2 and policy.seen[1][2, 0, 11] == 1
+    probe.spin_until(lambda: len(actions) == 2, what="two actions")
+    assert [a.data for a in actions] == ["walk", "walk"]
+
+
+def test_a_graph_published_before_the_node_started_is_not_followed(probe):
+    node, policy = start(probe, [Action.WALK])
+    node.on_observation(observation(0), source_info())
+    node.on_graph(graph(), source_info(t_ns=1))
+    assert policy.resets == [] and policy.seen == []
+
+
+def test_acts_at_once_on_a_fresh_observation_received_before_the_graph(probe):
+    node, policy = start(probe, [Action.STAY])
+    node.on_observation(observation(0), source_info())
+    assert policy.seen == []  # idle without a command
+    node.on_graph(graph(), source_info())
+    assert len(policy.seen) == 1
+
+
+def test_max_steps_forces_eos(probe):
+    actions = probe.record("action", String, EVENT_QOS)
+    status = probe.record("status", String, EVENT_QOS)
+    node, policy = start(probe, [Action.WALK], max_steps=3)
+    node.on_graph(graph(), source_info())
+    for _ in range(6):
+        node.on_observation(observation(), source_info())
+    probe.spin_until(lambda: len(actions) == 4, what="3 walks and <eos>")
+    assert [a.data for a in actions] == ["walk"] * 3 + ["<eos>"]
+    assert len(policy.seen) == 3  # idle after <eos>
+    probe.spin_until(lambda: any("stopped at max_steps=3" in s.data for s in status), what="the cap notice")
+
+
+def test_model_eos_ends_the_episode(probe):
+    actions = probe.record("action", String, EVENT_QOS)
+    node, policy = start(probe, [Action.TURN_LEFT, Action.EOS, Action.WALK])
+    node.on_graph(graph(), source_info())
+    for _ in range(4):
+        node.on_observation(observation(), source_info())
+    probe.spin_until(lambda: len(actions) == 2, what="turn left and <eos>")
+    assert [a.data for a in actions] == ["turn left", "<eos>"]
+    assert len(policy.seen) == 2
+
+
+def test_a_new_graph_preempts_and_waits_for_the_reply_to_the_last_action(probe):
+    status = probe.record("status", String, EVENT_QOS)
+    node, policy = start(probe, [Action.WALK])
+    node.on_graph(graph("walk to a red circle while spinning"), source_info())
+    node.on_observation(observation(), source_info())
+    node.on_graph(graph("push a big square"), source_info())
+    assert policy.resets == ["walk to a red circle while spinning", "push a big square"]
+    assert len(policy.seen) == 1  # the newest observation predates the in-flight walk
+    node.on_observation(observation(), source_info())
+    assert len(policy.seen) == 2
+    probe.spin_until(lambda: any("preempted 'walk to a red circle while spinning' after 1 actions" in s.data
+                                 for s in status), what="the preemption notice")
+
+
+@pytest.mark.parametrize("data", ["{not json", '{"schema_version": 1}', ""])
+def test_bad_graphs_are_reported_and_the_node_stays_idle(probe, data):
+    status = probe.record("status", String, EVENT_QOS)
+    node, policy = start(probe, [Action.WALK])
+    node.on_graph(String(data=data), source_info())
+    node.on_observation(observation(), source_info())
+    assert policy.seen == []
+    probe.spin_until(lambda: any("rejected command graph" in s.data for s in status), what="a rejection")
+
+
+def test_a_graph_of_another_parser_is_rejected(probe):
+    status = probe.record("status", String, EVENT_QOS)
+    node, policy = start(probe, [Action.WALK])
+    node.on_graph(graph_to_msg(get_parser("dependency").parse("walk to a red circle")), source_info())
+    assert policy.resets == []
+    probe.spin_until(lambda: any("'dependency' parser" in s.data for s in status), what="a rejection")
+
+
+def test_attention_maps_are_published_per_word(probe):
+    red = probe.record("attention/red", Image, EVENT_QOS)
+    spinning = probe.record("attention/while_spinning", Image, EVENT_QOS)
+    node, _ = start(probe, [Action.WALK], attention_upsample=4)
+    node.on_graph(graph(), source_info())
+    node.on_observation(observation(), source_info())
+    deadline = time.monotonic() + 30
+    while not (red and spinning):  # the publishers appear with the first step: allow discovery
+        assert time.monotonic() < deadline, "no attention maps"
+        node.on_observation(observation(), source_info())
+        probe.executor.spin_once(timeout_sec=0.05)
+    assert (red[0].height, red[0].width, red[0].encoding) == (24, 24, "mono8")
+    np.testing.assert_allclose(msg_to_attention(red[0]), np.eye(6))
+    np.testing.assert_allclose(msg_to_attention(spinning[0]), np.eye(6)[::-1])

@@ -1,0 +1,123 @@
+"""world_simulator_node in-process: lock-step replies, rejected and stale actions, reset_world."""
+import numpy as np
+import pytest
+from std_msgs.msg import String, UInt8MultiArray
+from std_srvs.srv import Trigger
+
+from gscan_ros.data.bag import write_bag
+from gscan_ros.errors import DatasetFormatError
+from gscan_ros.nodes.common import EVENT_QOS, LATCHED_LOG_QOS
+from gscan_ros.data.sources import sample_episode
+from gscan_ros.nodes.harness import Probe, fresh_domain_id
+from gscan_ros.nodes.world_simulator_node import WorldSimulatorNode
+from gscan_ros.world import World
+from gscan_ros.world.types import Action
+from msg_adapters import msg_to_observation
+
+from ros_helpers import parameters, source_info
+
+
+@pytest.fixture
+def probe():
+    p = Probe(fresh_domain_id())
+    yield p
+    p.close()
+
+
+@pytest.fixture
+def world(probe):
+    """(node, observations, status) with the node serving random seed 3, no images."""
+    observations = probe.record("observation", UInt8MultiArray, LATCHED_LOG_QOS)
+    status = probe.record("status", String, EVENT_QOS)
+    node = WorldSimulatorNode(context=probe.context, parameter_overrides=parameters(seed=3, publish_images=False))
+    probe.executor.add_node(node)
+    probe.spin_until(lambda: len(observations) == 1, what="the initial observation")
+    return node, observations, status
+
+
+def encoding_after(situation, *actions):
+    world = World(situation)
+    for action in actions:
+        world.step(action)
+    return world.encode()
+
+
+def test_initial_state_is_the_seeds_situation(world):
+    node, observations, _ = world
+    np.testing.assert_array_equal(msg_to_observation(observations[0]), encoding_after(sample_episode(3).situation))
+
+
+def test_each_action_gets_one_observation_of_the_new_state(probe, world):
+    node, observations, _ = world
+    for replies, token in enumerate(("turn left", "walk"), start=2):  # lock-step: one at a time
+        node.on_action(String(data=token), source_info())
+        probe.spin_until(lambda: len(observations) == replies, what=f"the reply to {token!r}")
+    expected = encoding_after(sample_episode(3).situation, Action.TURN_LEFT, Action.WALK)
+    np.testing.assert_array_equal(msg_to_observation(observations[-1]), expected)
+
+
+def test_invalid_action_is_reported_and_the_unchanged_state_resent(probe, world):
+    node, observations, status = world
+    before = node.world.encode()
+    node.on_action(String(data="fly away"), source_info())
+    probe.spin_until(lambda: len(observations) == 2, what="the reply to a rejected action")
+    probe.spin_until(lambda: any("rejected action" in s.data for s in status), what="a status line")
+    np.testing.assert_array_equal(node.world.encode(), before)
+    np.testing.assert_array_equal(msg_to_observation(observations[-1]), before)
+    assert any("'fly away'" in s.data for s in status)
+
+
+def test_action_sent_before_a_reset_is_ignored_without_reply(probe, world):
+    node, observations, status = world
+    node.on_action(String(data="walk"), source_info(t_ns=1))  # predates the node's (re)set
+    node.on_action(String(data="turn right"), source_info())
+    expected = encoding_after(sample_episode(3).situation, Action.TURN_RIGHT)
+    probe.spin_until(lambda: np.array_equal(msg_to_observation(observations[-1]), expected),
+                     what="the reply to the current action")
+    assert len(observations) == 2  # the initial state and one reply: none for the stale walk
+    probe.spin_until(lambda: any("before the world was reset" in s.data for s in status), what="a stale notice")
+
+
+def test_eos_ends_the_episode_with_a_status_line(probe, world):
+    node, observations, status = world
+    for replies in (2, 3):
+        node.on_action(String(data="stay"), source_info())
+        probe.spin_until(lambda: len(observations) == replies, what="a reply")
+    node.on_action(String(data="<eos>"), source_info())
+    probe.spin_until(lambda: any("episode ended after 2 actions" in s.data for s in status), what="episode end")
+    node.on_action(String(data="stay"), source_info())
+    probe.spin_until(lambda: len(observations) == 4, what="the next reply")
+    assert not any(m.data.endswith("after 3 actions") for m in status)
+
+
+def test_reset_world_serves_the_next_seed(probe, world):
+    node, observations, _ = world
+    client = probe.node.create_client(Trigger, "reset_world")
+    probe.spin_until(client.service_is_ready, what="reset_world")
+    future = client.call_async(Trigger.Request())
+    probe.spin_until(future.done, what="the reset response")
+    assert future.result().success
+    assert "seed 4" in future.result().message
+    probe.spin_until(lambda: len(observations) == 2, what="the new situation")
+    np.testing.assert_array_equal(msg_to_observation(observations[-1]), encoding_after(sample_episode(4).situation))
+
+
+def test_dataset_split_is_served_in_order_and_wraps_around(probe, tmp_path):
+    episodes = [sample_episode(seed) for seed in range(3)]
+    write_bag(tmp_path / "bag", episodes)
+    node = WorldSimulatorNode(
+        context=probe.context,
+        parameter_overrides=parameters(dataset=str(tmp_path / "bag"), split="random", index=1, publish_images=False),
+    )
+    served = [node.world.encode()]
+    for _ in range(2):
+        node.on_reset_world(Trigger.Request(), Trigger.Response())
+        served.append(node.world.encode())
+    for got, episode in zip(served, (episodes[1], episodes[2], episodes[0])):
+        np.testing.assert_array_equal(got, encoding_after(episode.situation))
+    node.destroy_node()
+
+
+def test_missing_dataset_is_a_start_up_error(probe):
+    with pytest.raises(DatasetFormatError):
+        WorldSimulatorNode(context=probe.context, parameter_overrides=parameters(dataset="/no/such/dataset.txt"))

@@ -30,7 +30,7 @@ setup(
     maintainer="gscan_ros maintainers",
     description="gSCAN command following with compositional networks on ROS 2 Jazzy",
     license="MIT",
-    tests_require=["pytest"],
+    extras_require={"test": ["pytest"]},  # `tests_require` is gone from setuptools >= 72
     entry_points={
         "console_scripts": [
             "gscan-ros = gscan_ros.cli:main",

@@ -1,8 +1,10 @@
-"""Parses per second of each built-in parser over the 675 gSCAN commands.
+"""Parses per second of each built-in parser over the 675 gSCAN commands, and error paths.
 
-cold: a fresh parser per pass, every command a cache miss (tokenize + chart parse +
-graph build and validation); warm: repeated commands, answered from the per-parser
-cache on the normalized token tuple (what the training loop and parser_node see).
+cold: a fresh parser per pass, every command a cache miss (tokenize + parse + graph
+build and validation); warm: repeated commands, answered from the per-parser cache on
+the normalized token tuple (what the training loop and parser_node see). "rejects" are
+the 675 commands reversed ("circle a to walk"): ungrammatical, so each is a
+CommandError, cached like a graph. Last, the cost of rejecting a 10 kB unknown word.
 
     .venv/bin/python bench/parse.py [--passes 3] [--lexicon wordnet|none]
 """
@@ -10,15 +12,25 @@ from __future__ import annotations
 
 import argparse
 import time
+from collections.abc import Callable
 
-from gscan_ros.language import Lexicon, all_commands, available_parsers, get_parser
+from gscan_ros.errors import CommandError
+from gscan_ros.language import Lexicon, all_commands, available_parsers, get_parser, tokenize
 
 
-def rate(parse_pass, passes: int, n: int) -> float:
+def rate(parse_pass: Callable[[], None], passes: int, n: int) -> float:
     start = time.perf_counter()
     for _ in range(passes):
         parse_pass()
     return passes * n / (time.perf_counter() - start)
+
+
+def parse_all(parser, commands) -> None:
+    for command in commands:
+        try:
+            parser.parse(command)
+        except CommandError:
+            pass
 
 
 def main() -> None:
@@ -31,22 +43,26 @@ def main() -> None:
     lexicon = Lexicon.from_wordnet() if args.lexicon == "wordnet" else Lexicon.none()
     print(f"lexicon ({args.lexicon}) built in {time.perf_counter() - start:.2f} s")
     commands = all_commands()
-    print(f"{'parser':<14}{'cold parses/s':>16}{'warm parses/s':>16}")
+    rejects = tuple(" ".join(reversed(tokenize(command))) for command in commands)
+    print(f"{'parser':<14}{'cold parses/s':>16}{'warm parses/s':>16}{'cold rejects/s':>16}{'warm rejects/s':>16}")
     for name in available_parsers():
-        def cold() -> None:
-            parser = get_parser(name, lexicon)
-            for command in commands:
-                parser.parse(command)
+        row = []
+        for inputs in (commands, rejects):
+            warm_parser = get_parser(name, lexicon)
+            parse_all(warm_parser, inputs)  # fill the cache
+            row += [rate(lambda: parse_all(get_parser(name, lexicon), inputs), args.passes, len(inputs)),
+                    rate(lambda: parse_all(warm_parser, inputs), args.passes, len(inputs))]
+        print(f"{name:<14}" + "".join(f"{r:>16,.0f}" for r in row))
 
-        warm_parser = get_parser(name, lexicon)
-
-        def warm() -> None:
-            for command in commands:
-                warm_parser.parse(command)
-
-        warm()  # fill the cache
-        cold_rate, warm_rate = rate(cold, args.passes, len(commands)), rate(warm, args.passes, len(commands))
-        print(f"{name:<14}{cold_rate:>16,.0f}{warm_rate:>16,.0f}")
+    long_word = "walk to a " + "x" * 10_000
+    calls = 200
+    start = time.perf_counter()
+    for _ in range(calls):
+        try:
+            tokenize(long_word)
+        except CommandError:
+            pass
+    print(f"tokenize rejecting a 10 kB unknown word: {(time.perf_counter() - start) / calls * 1e3:.3f} ms")
 
 
 if __name__ == "__main__":

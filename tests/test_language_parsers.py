@@ -18,7 +18,9 @@ from gscan_ros.language import (
     tokenize,
 )
 from gscan_ros.language import registry
+from gscan_ros.language.grammar import gscan_grammar, parse_tree
 from gscan_ros.language.graph import DUMMY_ROOT_WORD
+from gscan_ros.language.semantic import CHAIN_ORDER
 
 PARSERS = ("semantic", "constituency", "dependency")
 GSCAN = frozenset(all_commands())
@@ -218,3 +220,38 @@ def test_gscan_commands_in_any_surface_form_parse_to_the_normalized_command(comm
     text = separator.join(command.upper().split() if upper else command.split()) + "."
     for name in PARSERS:
         assert get_parser(name).parse(text).command == command
+
+
+@pytest.mark.parametrize("name", PARSERS)
+def test_parse_failures_are_cached_per_token_tuple(name):
+    p = get_parser(name)
+    with pytest.raises(CommandError, match="not in the gSCAN command grammar") as first:
+        p.parse("circle a to walk")
+    calls = []
+    p._graph = lambda tokens: calls.append(tokens)  # any parse from here on would be recorded
+    with pytest.raises(CommandError) as again:
+        p.parse("Circle, a to WALK!")
+    assert str(again.value) == str(first.value) and again.value is not first.value
+    assert calls == []
+    assert p._cached_outcome.cache_info().maxsize == 2048
+
+
+def test_semantic_chain_is_the_grammar_trees_content_words_by_category():
+    """The set lookup + category sort gives what the chart parse of gscan_grammar() gives."""
+    rank = {category: i for i, category in enumerate(CHAIN_ORDER)}
+    p = get_parser("semantic")
+    for command in all_commands():
+        tokens = tokenize(command)
+        tree = parse_tree(gscan_grammar(), tokens)
+        preterminals = [t for t in tree.subtrees() if t.label() in rank]
+        expected = [t[0] for t in sorted(preterminals, key=lambda t: rank[t.label()])]
+        assert [n.word for n in p.parse(command).nodes] == expected
+
+
+def test_every_gscan_word_has_one_preterminal_category():
+    categories = defaultdict(set)
+    for production in gscan_grammar().productions():
+        if len(production.rhs()) == 1 and isinstance(production.rhs()[0], str):
+            categories[production.rhs()[0]].add(production.lhs().symbol())
+    assert set(categories) == set(VOCABULARY) - {"to", "a"}
+    assert all(len(c) == 1 for c in categories.values())

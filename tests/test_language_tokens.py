@@ -1,9 +1,12 @@
+import difflib
+
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
 from gscan_ros.errors import CommandError
 from gscan_ros.language import MAX_TOKENS, VOCABULARY, tokenize
+from gscan_ros.language import tokens as tokens_impl
 
 
 def test_vocabulary_is_the_18_gscan_tokens():
@@ -60,3 +63,23 @@ def test_exactly_max_tokens_is_accepted():
 @given(st.lists(st.sampled_from(VOCABULARY), min_size=1, max_size=12), st.sampled_from([" ", ", ", "  ", " . "]))
 def test_joined_vocabulary_tokens_round_trip(tokens, separator):
     assert tokenize(separator.join(t.upper() for t in tokens)) == tuple(tokens)
+
+
+def test_a_long_unknown_word_is_named_clipped_and_costs_no_fuzzy_match(monkeypatch):
+    monkeypatch.setattr(difflib, "get_close_matches", lambda *args, **kwargs: pytest.fail("difflib was called"))
+    with pytest.raises(CommandError) as error:
+        tokenize("walk to a " + "x" * 10_000)
+    message = str(error.value)
+    assert message.startswith("unknown word '" + "x" * 39 + "…'; known words: walk, push")
+    assert len(message) < 300
+
+
+@pytest.mark.parametrize("padding", [0, 5, 20, 21, 22, 23, 40])
+@pytest.mark.parametrize("known", ["small", "while zigzagging"])
+def test_skipping_difflib_for_long_words_changes_no_suggestion(known, padding):
+    """The length bound is exact: past it difflib finds nothing, and at it the longest token still matches."""
+    word = known + "q" * padding
+    expected = difflib.get_close_matches(word, tokens_impl._HINTS, n=3, cutoff=tokens_impl._CUTOFF)
+    assert ("closest known words" in tokens_impl._unknown_word_message(word)) == bool(expected)
+    if known == "while zigzagging":  # the longest token: matches up to the bound, not beyond
+        assert bool(expected) == (len(word) <= tokens_impl._MATCHABLE_LEN)

@@ -11,6 +11,7 @@ from abc import ABC, abstractmethod
 from functools import lru_cache
 from typing import ClassVar, Protocol, Sequence, runtime_checkable
 
+from gscan_ros.errors import CommandError
 from gscan_ros.language.graph import CommandGraph, GraphEdge, GraphNode
 from gscan_ros.language.lexicon import Lexicon
 from gscan_ros.language.tokens import tokenize
@@ -28,18 +29,29 @@ class Parser(Protocol):
 class GrammarParser(ABC):
     """A built-in parser: tokenize, then build the graph of the token tuple (cached).
 
-    Parsing is a pure function of the tokens and the lexicon, so graphs (immutable)
-    are memoized per parser instance on the normalized token tuple.
+    Parsing is a pure function of the tokens and the lexicon, so its outcome is memoized
+    per parser instance on the normalized token tuple in one bounded LRU: the graph
+    (immutable), or the message of the CommandError, so a repeated ungrammatical command
+    costs no parse either.
     """
 
     name: ClassVar[str]
 
     def __init__(self, lexicon: Lexicon | None = None, cache_size: int = 2048) -> None:
         self.lexicon = lexicon if lexicon is not None else Lexicon.none()
-        self._cached_graph = lru_cache(maxsize=cache_size)(self._graph)
+        self._cached_outcome = lru_cache(maxsize=cache_size)(self._graph_or_error)
 
     def parse(self, command: str) -> CommandGraph:
-        return self._cached_graph(tokenize(command))
+        outcome = self._cached_outcome(tokenize(command))
+        if isinstance(outcome, str):
+            raise CommandError(outcome)
+        return outcome
+
+    def _graph_or_error(self, tokens: tuple[str, ...]) -> CommandGraph | str:
+        try:
+            return self._graph(tokens)
+        except CommandError as error:
+            return str(error)
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(lexicon={self.lexicon!r})"

@@ -1,19 +1,25 @@
 """Semantic parser: the logical form of the paper's Fig. 2(c), a chain of content words.
 
-The command is parsed with gSCAN's own grammar; its content words (function words
-'to'/'a' are bare terminals and drop out) are nested predicate over argument:
+The command must be a sentence of gSCAN's own grammar; its content words (function
+words 'to'/'a' are bare terminals and drop out) are nested predicate over argument:
 adverb over verb over color over size over noun, e.g.
 `while spinning(walk(red(small(circle))))` (GSCAN_SPEC §8.3, the original's
 `to_arg_tree` + `reorg_arg_tree`). Root = the adverb, else the verb; every word has
 arity 1 except the noun (0); word modules are keyed by word (or lexicon concept).
+
+The chain depends only on each content word's preterminal category, which the grammar
+gives every word exactly once, and the grammar's language is the finite set of 675
+commands it enumerates. So a parse is a set lookup plus a sort by category, about ten
+times cheaper than nltk's chart parse, which is run only to explain a rejection.
 """
 from __future__ import annotations
 
-from nltk.tree import Tree
+from functools import cache
 
-from gscan_ros.language.grammar import gscan_grammar, parse_tree
+from gscan_ros.language.grammar import all_commands, gscan_grammar, parse_tree
 from gscan_ros.language.graph import CommandGraph
 from gscan_ros.language.parser import GraphAssembler, GrammarParser
+from gscan_ros.language.tokens import tokenize
 
 ARG_LABEL = "arg"
 # Outermost first: which preterminal category takes which as its argument.
@@ -21,16 +27,30 @@ CHAIN_ORDER = ("RB", "VV_intrans", "VV_trans", "JJ_color", "JJ_size", "NN")
 _RANK = {category: rank for rank, category in enumerate(CHAIN_ORDER)}
 
 
+@cache
+def _gscan_language() -> frozenset[tuple[str, ...]]:
+    """The token tuples of the 675 commands `gscan_grammar()` derives."""
+    return frozenset(tokenize(command) for command in all_commands())
+
+
+@cache
+def _chain_rank() -> dict[str, int]:
+    """Content word -> its place in the chain, from the grammar's preterminal rules."""
+    return {
+        production.rhs()[0]: _RANK[production.lhs().symbol()]
+        for production in gscan_grammar().productions()
+        if production.lhs().symbol() in _RANK
+    }
+
+
 class SemanticParser(GrammarParser):
     name = "semantic"
 
     def _graph(self, tokens: tuple[str, ...]) -> CommandGraph:
-        tree = parse_tree(gscan_grammar(), tokens)
-        content = [
-            (sub.label(), sub[0])
-            for sub in tree.subtrees(lambda t: len(t) == 1 and not isinstance(t[0], Tree))
-        ]
-        chain = [word for _, word in sorted(content, key=lambda cw: _RANK[cw[0]])]
+        if tokens not in _gscan_language():
+            parse_tree(gscan_grammar(), tokens)  # raises the grammar's CommandError
+        rank = _chain_rank()
+        chain = sorted((word for word in tokens if word in rank), key=rank.__getitem__)
         asm = GraphAssembler()
         ids = [asm.reserve() for _ in chain]
         for i, word in enumerate(chain):

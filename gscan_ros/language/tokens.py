@@ -48,6 +48,10 @@ def _hint_table() -> dict[str, tuple[str, ...]]:
 
 _HINTS = _hint_table()
 _KNOWN = frozenset(VOCABULARY)
+_CUTOFF = 0.6  # difflib similarity a suggestion needs
+# difflib's ratio is 2 * matches / (len(word) + len(key)) <= 2 * len(key) / (len(word) + len(key)),
+# so a word longer than this reaches the cutoff with no key.
+_MATCHABLE_LEN = int(max(map(len, _HINTS)) * (2 / _CUTOFF - 1))
 
 
 def tokenize(text: str) -> tuple[str, ...]:
@@ -72,7 +76,9 @@ def tokenize(text: str) -> tuple[str, ...]:
 
 
 def _unknown_word_message(word: str) -> str:
-    close = difflib.get_close_matches(word, _HINTS, n=3, cutoff=0.6)
+    # Only words up to _MATCHABLE_LEN can have close matches: skipping difflib for longer
+    # ones changes no message and keeps a 10 kB word from costing milliseconds.
+    close = difflib.get_close_matches(word, _HINTS, n=3, cutoff=_CUTOFF) if len(word) <= _MATCHABLE_LEN else []
     suggestions = list(dict.fromkeys(t for key in close for t in _HINTS[key]))
     if suggestions:
         hint = "closest known words: " + ", ".join(repr(s) for s in suggestions)
@@ -82,4 +88,4 @@ def _unknown_word_message(word: str) -> str:
 
 
 def _clip(text: str, limit: int = 40) -> str:
-    return text if len(text) <= limit else text[: limit - 3] + "..."
+    return text if len(text) <= limit else text[: limit - 1] + "…"

@@ -40,3 +40,15 @@ def test_bag_situations_equal_the_dataset_json(dataset, tmp_path):
     cache = load_episode_cache(tmp_path / "train")
     assert cache.episodes == back
     assert read_bag_info(tmp_path / "train").episodes == len(raw)
+
+
+def test_directory_of_split_bags_reads_like_the_dataset(dataset, tmp_path):
+    """`generate --format mcap` writes DIR/<split>/ bags; DIR then works wherever dataset.txt does."""
+    splits = ["train", "test"]
+    for split in splits:
+        write_bag(tmp_path / split, iter_episodes(dataset, [split]))
+    for split in splits:
+        assert list(iter_episodes(tmp_path, [split])) == list(iter_episodes(dataset, [split]))
+    everything = list(iter_episodes(tmp_path))
+    assert sorted({e.split for e in everything}) == sorted(splits)
+    assert len(everything) == sum(len(list(iter_episodes(dataset, [s]))) for s in splits)

@@ -72,12 +72,12 @@ def run(args: argparse.Namespace) -> int:
 def _episodes(path: str, splits: list[str] | None):
     """The requested splits, or every evaluation split the dataset has (train/dev skipped
     without decoding them)."""
-    from gscan_ros.data.io import is_bag, iter_episodes
+    from gscan_ros.data.io import is_bag, iter_episodes, split_bags
 
     if splits:
         yield from iter_episodes(path, splits)
-    elif is_bag(path):
-        yield from (ep for ep in iter_episodes(path) if ep.split in EVAL_SPLITS)
+    elif is_bag(path) or split_bags(path):
+        yield from iter_episodes(path, EVAL_SPLITS)
     else:
         from gscan_ros.data.dataset import Example, iter_raw_examples
 

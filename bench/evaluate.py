@@ -1,10 +1,13 @@
 """Closed-loop evaluation throughput: batched (many live episodes per forward) vs batch 1.
 
-    .venv/bin/python bench/evaluate.py [--checkpoint CKPT] [--data DIR] [--episodes 512] [--threads 2]
+    .venv/bin/python bench/evaluate.py [--checkpoint CKPT] [--data DIR] [--episodes 512] [--threads 1]
+                                       [--max-steps 120]
 
 Defaults: the shipped model and 3000 freshly generated candidate examples (seed 0);
 episodes from the `test` split. The model decides when episodes stop, so a trained
-checkpoint gives realistic episode lengths (an untrained one runs all 121 iterations).
+checkpoint gives realistic episode lengths; an untrained one runs to the cap. To time
+gSCAN-length episodes with any model, cap them: `--max-steps 14` decodes exactly 15
+steps per episode (unless the model stops earlier), like a ~14-action gSCAN episode.
 """
 from __future__ import annotations
 
@@ -24,7 +27,8 @@ def main() -> None:
     ap.add_argument("--episodes", type=int, default=512)
     ap.add_argument("--single-episodes", type=int, default=64, help="episodes for the batch-1 measurement")
     ap.add_argument("--batch-size", type=int, default=256)
-    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--max-steps", type=int, default=120, help="decoding cap per episode (+1 for EOS)")
     args = ap.parse_args()
 
     import torch
@@ -49,13 +53,14 @@ def main() -> None:
     rates = {}
     for label, eps, batch in (("batched", episodes, args.batch_size),
                               ("batch 1", episodes[: args.single_episodes], 1)):
-        evaluate_episodes(policy, eps[: min(8, len(eps))], batch_size=batch)  # warm-up
+        evaluate_episodes(policy, eps[: min(8, len(eps))], batch_size=batch, max_steps=args.max_steps)  # warm-up
         start = time.time()
-        res = evaluate_episodes(policy, eps, batch_size=batch)
+        res = evaluate_episodes(policy, eps, batch_size=batch, max_steps=args.max_steps)
         seconds = time.time() - start
-        steps = sum(len(p.actions) + 1 for p in res.predictions)
+        steps = sum(min(len(p.actions) + 1, args.max_steps + 1) for p in res.predictions)  # + EOS unless capped
         rates[label] = len(eps) / seconds
-        print(f"{label:8s} {rates[label]:8.1f} episodes/s  ({steps / seconds:.0f} decoding steps/s, {len(eps)} episodes, "
+        print(f"{label:8s} {rates[label]:8.1f} episodes/s  ({steps / seconds:.0f} decoding steps/s, "
+              f"{steps / len(eps):.1f} steps/episode, {len(eps)} episodes, "
               f"batch {batch}, exact match {res.exact_match:.1f} %, threads {args.threads})")
     print(f"batched / batch-1 ratio: {rates['batched'] / rates['batch 1']:.1f}")
     print(f"peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")

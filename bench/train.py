@@ -1,6 +1,6 @@
 """Training throughput: examples/s and peak RSS, mixed batches vs the original one-command batches.
 
-    .venv/bin/python bench/train.py [--data DIR] [--updates 6] [--threads 2]
+    .venv/bin/python bench/train.py [--data DIR] [--updates 6] [--threads 1]
 
 Without --data, a dataset of 6000 candidate examples is generated into a temp dir
 (seed 0; gSCAN-length episodes, ~14 actions on average). Each mode runs in its own
@@ -24,9 +24,10 @@ def measure(data: str, mode: str, updates: int, threads: int, batch_size: int) -
     from gscan_ros.language.registry import get_parser
     from gscan_ros.training.batches import EpisodeStore, batch_order
     from gscan_ros.training.config import TrainConfig
-    from gscan_ros.training.trainer import load_split, make_lexicon, new_model
+    from gscan_ros.training.trainer import keep_freed_memory, load_split, make_lexicon, new_model
 
     torch.set_num_threads(threads)
+    keep_freed_memory()
     torch.manual_seed(0)
     lexicon = make_lexicon("wordnet")
     parser = get_parser("semantic", lexicon)
@@ -60,7 +61,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", help="dataset (default: generate 6000 candidates into a temp dir)")
     ap.add_argument("--updates", type=int, default=6)
-    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--threads", type=int, default=1, help="torch threads (2 on a loaded 2-core box is ~50x slower)")
     ap.add_argument("--batch-size", type=int, default=200)
     ap.add_argument("--mode", choices=("mixed", "per_command"), help="(internal) measure one mode in this process")
     args = ap.parse_args()

@@ -10,10 +10,15 @@ Every word module's parameters live in one *bank* (stacked tensors indexed by mo
 attention head). A batch of B graphs is laid out as B rows of J *slots*: the nodes of
 each graph grouped by level (`CommandGraph.levels()`, leaves first), every level one
 block of slots shared by all rows (shorter levels padded). `bind()` gathers, once per
-batch, every slot's own parameters from the bank; a time step then evaluates the blocks
-in order, each block with a handful of batched tensor ops (`bmm`/`einsum` over the
-gathered per-slot weights), whatever modules the slots hold. Padding slots compute
-throw-away values that nothing reads.
+batch, every slot's attention parameters from the bank; a time step then evaluates the
+blocks in order, each block with a handful of batched tensor ops, whatever modules the
+slots hold. GRUs run on slots grouped by module (`SlotGroups`: one `bmm` per gate
+matrix with the module's own weight). Padding slots compute throw-away values that
+nothing reads.
+
+The hidden-state input of an attention is broadcast over the cells and cancels in its
+softmax, so it is not computed; with message='attention' only the root's GRU then
+matters and only it runs (see `CompositionalNetwork.step` and docs/model.md).
 
 The visual encoder exploits the one-hot input: a 'same' convolution on a 6x6 grid is a
 fixed linear map from the 576 input bits to the 36x150 features, so the convolution is
@@ -233,26 +238,82 @@ class VisualEncoder(nn.Module):
     def bias(self) -> torch.Tensor:
         return torch.cat([conv.bias for conv in self.convs])
 
-    def _inference_toeplitz(self) -> torch.Tensor:
-        """Toeplitz matrix cached across no-grad calls (closed loop re-encodes every step)
+    def _weight(self) -> torch.Tensor:
+        """[cells*C + 1, cells*F]: the Toeplitz matrix plus a last row holding the bias of
+        every cell, so the bias rides in the embedding bag instead of a full extra pass."""
+        return torch.cat([self.toeplitz(), self.bias.repeat(self.cfg.cells)[None]])
+
+    def _inference_weight(self) -> torch.Tensor:
+        """`_weight()` cached across no-grad calls (closed loop re-encodes every step)
         until a conv parameter changes (tracked by tensor versions)."""
         key = tuple((p.data_ptr(), p._version) for p in self.parameters())
         if getattr(self, "_cache_key", None) != key:
-            self._cache_key, self._cache = key, self.toeplitz()
+            self._cache_key, self._cache = key, self._weight()
         return self._cache
 
     def forward(self, indices: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
-        """Sparse path: set-bit indices of flattened [g, g, C] states (see `sparse_states`) -> [N, cells, F]."""
-        weight = self.toeplitz() if torch.is_grad_enabled() else self._inference_toeplitz()
-        flat = F.embedding_bag(indices, weight, offsets, mode="sum")
-        feats = flat.view(-1, self.cfg.cells, self.cfg.feature_dim) + self.bias
-        return self.dropout(F.relu(feats))
+        """Sparse path: set-bit indices of flattened [g, g, C] states (see `sparse_states`) -> [N, cells, F].
+
+        Dropout's 1/(1-p) scale is folded into the weights (ReLU commutes with a positive
+        scale) and its mask is applied in the same op as the ReLU (`_ReluDrop`): the
+        [N, cells, F] features are the largest tensors of a batch and memory-bound.
+        """
+        n = offsets.numel()
+        bias_row = self.cfg.cells * self.cfg.in_channels
+        starts = offsets + torch.arange(n)  # each bag gets the bias row first
+        bags = torch.full((indices.numel() + n,), bias_row, dtype=torch.long)
+        is_bit = torch.ones(bags.numel(), dtype=torch.bool)
+        is_bit[starts] = False
+        bags[is_bit] = indices
+        drop = None
+        if self.training and self.cfg.cnn_dropout > 0:
+            drop, p = _drop_mask(n * self.cfg.cells * self.cfg.feature_dim, self.cfg.cnn_dropout)
+            weight = self._weight() * (1.0 / (1.0 - p))
+        else:
+            weight = self._weight() if torch.is_grad_enabled() else self._inference_weight()
+        flat = F.embedding_bag(bags, weight, starts, mode="sum")
+        feats = flat.view(n, self.cfg.cells, self.cfg.feature_dim)
+        if not torch.is_grad_enabled():
+            return feats.clamp_min_(0) if drop is None else feats.clamp_min_(0).masked_fill_(drop.view_as(feats), 0)
+        return _ReluDrop.apply(feats, drop)
 
     def dense(self, states: torch.Tensor) -> torch.Tensor:
         """Reference path on float/uint8 [N, g, g, C] states -> [N, cells, F]."""
         x = states.float().permute(0, 3, 1, 2)
         feats = torch.cat([conv(x) for conv in self.convs], 1)
         return self.dropout(F.relu(feats)).flatten(2).transpose(1, 2)
+
+
+_DROP_LEVELS = 1 << 16
+
+
+def _drop_mask(size: int, p: float) -> tuple[torch.Tensor, float]:
+    """A Bernoulli(p) drop mask of `size` elements and its exact p (a multiple of 2^-16).
+
+    Drawn with numpy's PCG64 from a seed taken from torch's generator (so `torch.manual_seed`
+    still fixes it): ~7x faster than `bernoulli_` on the 20M-element feature tensors.
+    """
+    cut = round(p * _DROP_LEVELS)
+    rng = np.random.default_rng(int(torch.randint(0, 2**62, (1,))))
+    draws = rng.integers(0, _DROP_LEVELS, size=size, dtype=np.uint16)
+    return torch.from_numpy(draws < cut), cut / _DROP_LEVELS
+
+
+class _ReluDrop(torch.autograd.Function):
+    """ReLU, then zero the dropped elements. The backward needs only the output (an
+    element passes gradient iff it is > 0) and runs as one fused `threshold_backward`;
+    both directions are single passes over the [N, cells, F] features."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, drop: torch.Tensor | None) -> torch.Tensor:
+        y = x.relu() if drop is None else torch.where(drop.view_as(x), 0.0, x).relu_()
+        ctx.save_for_backward(y)
+        return y
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        (y,) = ctx.saved_tensors
+        return torch.ops.aten.threshold_backward(grad, y, 0), None
 
 
 def sparse_states(states: np.ndarray | torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -437,25 +498,102 @@ class Bound:
     root's output layer and the antonym pairs. `select(rows)` keeps a subset of rows
     (closed-loop evaluation drops finished episodes); `prefix(n)` is the cheap variant
     for teacher forcing, where rows are sorted by length.
+
+    The GRUs do not use per-slot gathered weights: the slots that run one (the root with
+    message='attention', every real slot block by block with pass_state) are grouped by
+    module (`SlotGroups`), so a layer is one `bmm` per gate matrix with one weight per
+    module present, and its weight gradient is a dense reduction over the group's rows.
     """
 
     def __init__(self, blocks: list[dict[str, torch.Tensor]], top: dict[str, torch.Tensor], num_slots: int,
-                 spans: list[tuple[int, int]]):
-        self.blocks, self.top, self.num_slots, self.spans = blocks, top, num_slots, spans
+                 spans: list[tuple[int, int]], bank: "WordModuleBank"):
+        self.blocks, self.top, self.num_slots, self.spans, self.bank = blocks, top, num_slots, spans, bank
+        if bank.cfg.passes_state:  # GRUs run block by block (see CompositionalNetwork.step)
+            self.gru = [_GruGroups(blk["gru_module"], bank) for blk in blocks]
+        else:  # only the root's GRU matters (see CompositionalNetwork.step)
+            self.gru_root = _GruGroups(top["root_module"][:, None], bank)
+        self._feat_w: list[torch.Tensor | None] = [None] * len(blocks)
 
     @property
     def rows(self) -> int:
         return self.top["root"].shape[0]
 
+    def feat_w(self, block: int) -> torch.Tensor:
+        """[n, F, k*S*A]: every slot's feature projection weights, so that one `bmm` projects
+        a step's features for the whole block. Built on first use: only closed-loop
+        decoding needs it (teacher forcing precomputes the projections for all steps)."""
+        if self._feat_w[block] is None:
+            units = self.blocks[block]["att_unit"].clamp(min=0)
+            n, k = units.shape
+            w = self.bank.att_feat_w[units]  # [n, k, S, F, A]
+            self._feat_w[block] = w.permute(0, 3, 1, 2, 4).reshape(n, w.shape[3], -1)
+        return self._feat_w[block]
+
     def _map(self, fn) -> "Bound":
         return Bound([{k: fn(v) for k, v in blk.items()} for blk in self.blocks],
-                     {k: fn(v) for k, v in self.top.items()}, self.num_slots, self.spans)
+                     {k: fn(v) for k, v in self.top.items()}, self.num_slots, self.spans, self.bank)
 
     def select(self, rows: torch.Tensor) -> "Bound":
         return self._map(lambda t: t.index_select(0, rows))
 
     def prefix(self, n: int) -> "Bound":
         return self if n == self.rows else self._map(lambda t: t[:n])
+
+
+class SlotGroups:
+    """A block's slots [n, k] grouped by a key (module or attention unit; -1 = skip the
+    slot), padded to [groups, width] so that one `bmm` applies each group's own weight.
+
+    `keys` [groups] are the distinct keys; `idx` [groups*width] the flattened n*k slot of
+    each member (padding members repeat a real one; their results are never read); `inv`
+    [n*k] where each slot's result lands (skipped slots point at an arbitrary result).
+    """
+
+    def __init__(self, slot_keys: torch.Tensor):
+        flat = slot_keys.reshape(-1)
+        members = (flat >= 0).nonzero().squeeze(1)
+        if members.numel() == 0:  # e.g. a level that no row of this prefix has
+            members = torch.zeros(1, dtype=torch.long)
+            keys_of = torch.zeros(1, dtype=torch.long)
+        else:
+            keys_of = flat[members]
+            order = torch.argsort(keys_of, stable=True)
+            members, keys_of = members[order], keys_of[order]
+        self.keys, counts = torch.unique_consecutive(keys_of, return_counts=True)
+        self.groups, self.width = self.keys.numel(), int(counts.max())
+        group = torch.repeat_interleave(torch.arange(self.groups), counts)
+        target = group * self.width + torch.arange(members.numel()) - torch.repeat_interleave(counts.cumsum(0) - counts, counts)
+        self.idx = members[0].repeat(self.groups * self.width)
+        self.idx[target] = members
+        self.inv = torch.full((flat.numel(),), int(target[0]), dtype=torch.long)
+        self.inv[members] = target
+
+
+class _GruGroups(SlotGroups):
+    """Real slots by module, with the modules' GRU weights gathered once per grouping."""
+
+    def __init__(self, gru_module: torch.Tensor, bank: "WordModuleBank"):
+        super().__init__(gru_module)
+        self.w = {}
+        for layer in range(bank.cfg.rnn_layers):
+            self.w[f"x{layer}"] = bank.gru_x[layer].index_select(0, self.keys)
+            self.w[f"h{layer}"] = bank.gru_h[layer].index_select(0, self.keys)
+            self.w[f"bx{layer}"] = bank.gru_bx[layer].index_select(0, self.keys)[:, None]
+            self.w[f"bh{layer}"] = bank.gru_bh[layer].index_select(0, self.keys)[:, None]
+
+    def run(self, x: torch.Tensor, h_prev: torch.Tensor, layers: int, hidden: int) -> torch.Tensor:
+        """All layers of every real slot: x [n, k, in], h_prev [n, k, L*H] -> [n, k, L*H]."""
+        n, k = x.shape[:2]
+        shape = (self.groups, self.width)
+        xg = x.reshape(n * k, -1).index_select(0, self.idx).view(*shape, -1)
+        hg = h_prev.reshape(n * k, -1).index_select(0, self.idx).view(*shape, -1)
+        w, out = self.w, []
+        for layer in range(layers):
+            h = hg[..., layer * hidden : (layer + 1) * hidden]
+            xg = _gru_cell(xg, h, w[f"x{layer}"], w[f"h{layer}"], w[f"bx{layer}"], w[f"bh{layer}"])
+            out.append(xg)
+        h_new = torch.cat(out, -1) if layers > 1 else out[0]
+        return h_new.view(self.groups * self.width, -1).index_select(0, self.inv).view(n, k, -1)
 
 
 # ------------------------------------------------------------------------ network
@@ -482,35 +620,36 @@ class CompositionalNetwork(nn.Module):
 
     def bind(self, layout: Layout) -> Bound:
         bank, cfg = self.bank, self.cfg
-        L, H, A = cfg.rnn_layers, cfg.rnn_dim, cfg.att_dim
+        A = cfg.att_dim
         blocks = []
         for lo, hi in layout.blocks:
             u, m = layout.unit[:, lo:hi], layout.module[:, lo:hi]
             B, k = u.shape
             blk = {"child": layout.child[:, lo:hi], "src": layout.src[:, lo:hi]}
             if cfg.uses_attention:
-                S = bank.max_slots
-                # [B, k, S, F, A] -> [B, F, k*S*A]: one bmm projects every slot of the block.
-                blk["feat_w"] = bank.att_feat_w[u].permute(0, 3, 1, 2, 4).reshape(B, cfg.feature_dim, k * S * A)
+                blk["att_unit"] = torch.where(layout.occupied[:, lo:hi], u, -1)
                 blk["feat_b"] = bank.att_feat_b[u]
-                blk["state_w"], blk["state_b"] = bank.att_state_w[u], bank.att_state_b[u]
-                blk["out_w"], blk["out_b"] = bank.att_out_w[u], bank.att_out_b[u]
-                blk["slot_mask"] = layout.slot_mask[:, lo:hi]
+                # Output weights of the feature inputs; slots past a module's arity weigh 0.
+                S = bank.max_slots
+                score_w = bank.att_out_w[u][:, :, :S] * layout.slot_mask[:, lo:hi, :, None]
+                blk["score_w"] = score_w.reshape(B, k, S * A)
             if cfg.passes_state:
                 blk["pass_w"], blk["pass_b"] = bank.state_w[m], bank.state_b[m]
-            for layer in range(L):
-                blk[f"gx{layer}"], blk[f"gh{layer}"] = bank.gru_x[layer][m], bank.gru_h[layer][m]
-                blk[f"bx{layer}"], blk[f"bh{layer}"] = bank.gru_bx[layer][m], bank.gru_bh[layer][m]
+            if cfg.passes_state:
+                # Real slots run their module's GRU; padding and antonym shadows (src != own slot) none.
+                real = layout.occupied[:, lo:hi] & (layout.src[:, lo:hi] == torch.arange(lo, hi))
+                blk["gru_module"] = torch.where(real, m, -1)
             blocks.append(blk)
         root_module = layout.module.gather(1, layout.root[:, None])[:, 0]
         top = {
             "root": layout.root,
+            "root_module": root_module,
             "out_w": bank.out_w[root_module],
             "out_b": bank.out_b[root_module],
             "pairs": layout.pairs,
             "pair_mask": layout.pair_mask,
         }
-        return Bound(blocks, top, layout.num_slots, list(layout.blocks))
+        return Bound(blocks, top, layout.num_slots, list(layout.blocks), bank)
 
     def initial_hidden(self, rows: int, num_slots: int) -> torch.Tensor:
         return torch.zeros(rows, num_slots, self.cfg.rnn_layers * self.cfg.rnn_dim)
@@ -531,54 +670,61 @@ class CompositionalNetwork(nn.Module):
         L, H = cfg.rnn_layers, cfg.rnn_dim
         maps_done: list[torch.Tensor] = [feats.new_ones(n, 1, cells)]  # pool index 0 = 'no child'
         hid_done: list[torch.Tensor] = [feats.new_zeros(n, 1, L * H)]
-        for (lo, hi), blk in zip(bound.spans, bound.blocks):
-            child, src = blk["child"], blk["src"]
+        for b_i, ((lo, hi), blk) in enumerate(zip(bound.spans, bound.blocks)):
+            child = blk["child"]
             k, S = child.shape[1], child.shape[2]
-            h_prev = hidden.gather(1, src[..., None].expand(-1, -1, L * H))  # [n, k, LH]
             parts = []
             if cfg.uses_attention:
                 pool = torch.cat(maps_done, 1)
                 cmaps = pool.gather(1, child.reshape(n, k * S, 1).expand(-1, -1, cells)).view(n, k, S, cells)
-                att = self._attend(blk, feats, cmaps, h_prev, None if proj is None else proj[:, lo:hi])
-                maps_done.append(att)
-                parts.append(torch.bmm(att, feats))  # attention-weighted feature sum
+                if proj is None:
+                    p = torch.bmm(feats, bound.feat_w(b_i)).view(n, cells, k, -1).transpose(1, 2)
+                else:
+                    p = proj[:, lo:hi]
+                maps_done.append(self._attend(blk, cmaps, p))
+                if not cfg.passes_state:
+                    continue  # the root's GRU runs after the loop
+                parts.append(torch.bmm(maps_done[-1], feats))  # attention-weighted feature sum
             else:
                 parts.append(feats.sum(1, keepdim=True).expand(-1, k, -1))
-            if cfg.passes_state:
-                hpool = torch.cat(hid_done, 1)
-                ch = hpool.gather(1, child.reshape(n, k * S, 1).expand(-1, -1, L * H)).view(n, k, S * L * H)
-                parts.append(torch.einsum("nki,nkio->nko", ch, blk["pass_w"]) + blk["pass_b"])
-            x = torch.cat(parts, -1) if len(parts) > 1 else parts[0]
-            h_new = []
-            for layer in range(L):
-                h = h_prev[..., layer * H : (layer + 1) * H]
-                x = _gru_cell(x, h, blk[f"gx{layer}"], blk[f"gh{layer}"], blk[f"bx{layer}"], blk[f"bh{layer}"])
-                h_new.append(x)
-            hid_done.append(torch.cat(h_new, -1))
-        new_hidden = torch.cat(hid_done[1:], 1)
-        top = bound.top
-        root_h = new_hidden.gather(1, top["root"][:, None, None].expand(-1, 1, L * H))[:, 0, (L - 1) * H :]
-        logits = torch.bmm(root_h[:, None], top["out_w"])[:, 0] + top["out_b"]
+            # Parents read their children's new states: this block's GRUs run now.
+            hpool = torch.cat(hid_done, 1)
+            ch = hpool.gather(1, child.reshape(n, k * S, 1).expand(-1, -1, L * H)).view(n, k, S * L * H)
+            parts.append(torch.einsum("nki,nkio->nko", ch, blk["pass_w"]) + blk["pass_b"])
+            h_prev = hidden.gather(1, blk["src"][..., None].expand(-1, -1, L * H))  # [n, k, LH]
+            hid_done.append(bound.gru[b_i].run(torch.cat(parts, -1), h_prev, L, H))
         maps = torch.cat(maps_done[1:], 1) if cfg.uses_attention else None
+        top = bound.top
+        root = top["root"][:, None, None]
+        if cfg.passes_state:
+            new_hidden = torch.cat(hid_done[1:], 1)
+            root_h = new_hidden.gather(1, root.expand(-1, 1, L * H))
+        else:
+            # With message='attention' a module's state reaches nothing but its own
+            # attention, where it cancels (see `_attend`): only the root's state, which
+            # the action is decoded from, matters. The other slots' GRUs are not run and
+            # their states stay zero.
+            x = torch.bmm(maps.gather(1, root.expand(-1, 1, cells)), feats)
+            root_h = bound.gru_root.run(x, hidden.gather(1, root.expand(-1, 1, L * H)), L, H)
+            new_hidden = hidden.scatter(1, root.expand(-1, 1, L * H), root_h)
+        logits = torch.bmm(root_h[:, :, (L - 1) * H :], top["out_w"])[:, 0] + top["out_b"]
         overlap = self._overlap(maps, top) if maps is not None and top["pairs"].shape[1] else feats.new_zeros(n)
         return StepResult(logits, new_hidden, maps, overlap)
 
-    def _attend(self, blk, feats, cmaps, h_prev, proj) -> torch.Tensor:
-        """softmax_cells( W_out . ReLU([ (feats*map_s) W_s + b_s ]_s ++ [h W_h + b_h]) + b ) -> [n, k, cells]."""
+    def _attend(self, blk, cmaps, proj) -> torch.Tensor:
+        """softmax_cells( W_out . ReLU([ (feats*map_s) W_s + b_s ]_s ++ [h W_h + b_h]) + b ) -> [n, k, cells].
+
+        (feats * map) W == map * (feats W): `proj` [n, k, cells, S*A] holds every slot's
+        feature projection, weighted here by the child's map. The hidden-state input
+        (`att_state_*`, its `att_out_w` column and `att_out_b`) is broadcast over the
+        cells, so it adds the same constant to every cell's logit and cancels in the
+        softmax: it is not computed (GSCAN_SPEC §8.4's maps are exactly the same).
+        """
         n, k, S, cells = cmaps.shape
-        A = self.cfg.att_dim
-        # (feats * map) W == map * (feats W): project once per slot, then weight by the child's map.
-        if proj is None:
-            proj = torch.bmm(feats, blk["feat_w"]).view(n, cells, k, S, A)
-        else:
-            proj = proj.transpose(1, 2).reshape(n, cells, k, S, A)
-        proj = proj * cmaps.permute(0, 3, 1, 2)[..., None] + blk["feat_b"][:, None]
-        out_w = blk["out_w"]
-        score = (F.relu(proj) * out_w[:, None, :, :S]).sum(-1)  # [n, cells, k, S]
-        score = (score * blk["slot_mask"][:, None]).sum(-1)  # [n, cells, k]
-        state = F.relu(torch.einsum("nkh,nkha->nka", h_prev, blk["state_w"]) + blk["state_b"])
-        score = score + ((state * out_w[:, :, S]).sum(-1) + blk["out_b"])[:, None]
-        return torch.softmax(score, 1).transpose(1, 2)
+        proj = proj.reshape(n, k, cells, S, -1)  # a view in teacher forcing
+        hidden = torch.addcmul(blk["feat_b"][:, :, None], proj, cmaps.transpose(2, 3)[..., None]).relu_()
+        score = (hidden.view(n, k, cells, -1) * blk["score_w"][:, :, None]).sum(-1)  # [n, k, cells]
+        return torch.softmax(score, 2)
 
     @staticmethod
     def _overlap(maps: torch.Tensor, top: dict) -> torch.Tensor:
@@ -636,13 +782,54 @@ class CompositionalNetwork(nn.Module):
         order = torch.argsort(units, stable=True)
         step_idx, slot_idx, units = step_idx[order], slot_idx[order], units[order]
         present, counts = torch.unique_consecutive(units, return_counts=True)
-        gathered = feats.index_select(0, step_idx)  # one gather: its backward is one index_add
-        parts = []
-        for u, rows in zip(present.tolist(), gathered.split(counts.tolist())):
-            w = bank.att_feat_w[u].permute(1, 0, 2).reshape(-1, S * A)  # [F, S*A]
-            parts.append(rows @ w)
-        out = feats.new_zeros(steps, J, cells, S * A)
-        return out.index_put((step_idx, slot_idx), torch.cat(parts))
+        groups = list(zip(present.tolist(), step_idx.split(counts.tolist()), slot_idx.split(counts.tolist())))
+        return _SlotProjection.apply(feats, bank.att_feat_w, groups, (steps, J, cells, S * A))
+
+
+class _SlotProjection(torch.autograd.Function):
+    """out[s, j] = feats[s] @ W[unit]: the projection of step s's features for slot j, for
+    every (step, slot, unit) of `groups` (a list of (unit, step ids, slot ids)).
+
+    Works through each unit's steps in chunks of `CHUNK` gathered feature maps (~1.4 MB,
+    cache-resident), so neither direction materialises the [pairs, cells, F] gather
+    (~4x the feature tensor) that a plain `index_select` + `mm` would write and read.
+    """
+
+    CHUNK = 64
+
+    @staticmethod
+    def forward(ctx, feats, weight, groups, shape):
+        ctx.save_for_backward(feats, weight)
+        ctx.groups = groups
+        cells, width = shape[2:]
+        fd = feats.shape[-1]
+        out = feats.new_zeros(shape)
+        for u, step_ids, slot_ids in groups:
+            w = weight[u].permute(1, 0, 2).reshape(fd, width)
+            for s, j in zip(step_ids.split(_SlotProjection.CHUNK), slot_ids.split(_SlotProjection.CHUNK)):
+                rows = feats.index_select(0, s).view(-1, fd)
+                out[s, j] = (rows @ w).view(-1, cells, width)
+        return out
+
+    @staticmethod
+    def backward(ctx, grad):
+        feats, weight = ctx.saved_tensors
+        cells, fd = feats.shape[1:]
+        width = grad.shape[-1]
+        grad_feats = torch.zeros_like(feats) if ctx.needs_input_grad[0] else None
+        grad_w = torch.zeros_like(weight) if ctx.needs_input_grad[1] else None
+        for u, step_ids, slot_ids in ctx.groups:
+            w = weight[u].permute(1, 0, 2).reshape(fd, width)
+            acc = feats.new_zeros(fd, width)
+            for s, j in zip(step_ids.split(_SlotProjection.CHUNK), slot_ids.split(_SlotProjection.CHUNK)):
+                g = grad[s, j].view(-1, width)
+                if grad_w is not None:
+                    acc.addmm_(feats.index_select(0, s).view(-1, fd).T, g)
+                if grad_feats is not None:
+                    grad_feats.index_add_(0, s, (g @ w.T).view(-1, cells, fd))
+            if grad_w is not None:
+                grad_w[u] = acc.view(fd, weight.shape[1], weight.shape[3]).permute(1, 0, 2)
+        return grad_feats, grad_w, None, None
 
 
 @dataclass
@@ -674,9 +861,9 @@ class TeacherOutput:
 
 
 def _gru_cell(x, h, wx, wh, bx, bh) -> torch.Tensor:
-    """torch.nn.GRU's cell with per-slot weights: x [n,k,in], h [n,k,H], wx [n,k,in,3H]."""
-    gx = torch.einsum("nki,nkio->nko", x, wx) + bx
-    gh = torch.einsum("nki,nkio->nko", h, wh) + bh
+    """torch.nn.GRU's cell per group: x [g,w,in], h [g,w,H], wx [g,in,3H], bx [g,1,3H]."""
+    gx = torch.baddbmm(bx, x, wx)
+    gh = torch.baddbmm(bh, h, wh)
     H = h.shape[-1]
     rz = torch.sigmoid(gx[..., : 2 * H] + gh[..., : 2 * H])
     r, z = rz[..., :H], rz[..., H:]

@@ -55,9 +55,11 @@ class EpisodeStore:
     def graph_table(self, lexicon=None) -> ModuleTable:
         return ModuleTable.from_graphs(self.graphs, lexicon)
 
-    def batch(self, ids: Sequence[int], table: ModuleTable, quantum: int = 32) -> TeacherBatch:
+    def batch(self, ids: Sequence[int], table: ModuleTable, quantum: int = 8) -> TeacherBatch:
         """A TeacherBatch of episodes `ids`: rows sorted by length, packed time-major, the
-        number of rows computed per step rounded up to a multiple of `quantum`."""
+        number of rows computed per step rounded up to a multiple of `quantum` (fewer
+        re-slices of the per-row tensors vs. fewer padded steps: 1-8 measured alike on a
+        batch of 200, ~10% faster than 32)."""
         ids = np.asarray(ids, dtype=np.int64)
         ids = ids[np.argsort(-self.lengths[ids], kind="stable")]
         lengths = self.lengths[ids]

@@ -7,6 +7,8 @@ state: the file to ship or evaluate).
 """
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import json
 import logging
 import random
@@ -54,6 +56,26 @@ def seed_everything(seed: int) -> dict:
     return {"python": seed, "numpy": seed, "torch": seed}
 
 
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # glibc mallopt parameters
+
+
+def keep_freed_memory(threshold: int = 1 << 30) -> bool:
+    """Let glibc keep freed tensors in the heap instead of returning them to the OS.
+
+    By default glibc serves every block above 32 MB with mmap and unmaps it on free, so
+    each ~80 MB feature tensor of a training batch is page-faulted in again on every
+    update; on a VM that costs about a fifth of an update. Raising the mmap and trim
+    thresholds makes those blocks reusable. Returns False (and changes nothing) where
+    the C library has no `mallopt` (non-glibc platforms).
+    """
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):
+        return False
+    return bool(mallopt(_M_MMAP_THRESHOLD, threshold)) and bool(mallopt(_M_TRIM_THRESHOLD, threshold))
+
+
 def make_lexicon(name: str) -> Lexicon:
     return Lexicon.from_wordnet() if name == "wordnet" else Lexicon.none()
 
@@ -92,6 +114,7 @@ def train(cfg: TrainConfig, data: str, out_dir: str | Path, resume: bool = False
     files = RunFiles(Path(out_dir))
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
+    keep_freed_memory()
     seeds = seed_everything(cfg.seed)
     lexicon = make_lexicon(cfg.lexicon)
     from gscan_ros.language.registry import get_parser

@@ -82,6 +82,17 @@ class EpisodeCache:
         """uint8[T+1, 6, 6, 16]: the same arrays as `episode(index).states()`."""
         return np.unpackbits(self.packed_states(index), axis=-1, count=int(self._arrays["channels"]))
 
+    def stacked_states(self, indices: Iterable[int]) -> np.ndarray:
+        """uint8[sum(T+1), 6, 6, 16]: the states of episodes `indices`, concatenated in order."""
+        packed = [self.packed_states(i) for i in indices]
+        if not packed:
+            return np.zeros((0, *self._arrays["packed_states"].shape[1:-1], int(self._arrays["channels"])), np.uint8)
+        return np.unpackbits(np.concatenate(packed), axis=-1, count=int(self._arrays["channels"]))
+
+    def subset(self, indices: Iterable[int]) -> "EpisodeCache":
+        """The episodes `indices` of this cache (in that order), sharing its arrays."""
+        return EpisodeCache(self._arrays, self._rows[np.asarray(list(indices), dtype=np.int64)], self._where)
+
     def episode(self, index: int) -> Episode:
         episode = self._episodes.get(index)
         if episode is None:

@@ -127,13 +127,13 @@ class Seq2Seq(nn.Module):
     def make_batch(self, store, ids) -> dict:
         """Teacher-forcing inputs from an EpisodeStore: commands, initial states, targets."""
         ids = np.asarray(ids)
-        first = np.stack([store.episodes[i].states()[0] for i in ids])
+        first = store.initial_states(ids)
         targets = [store.actions[store.ep_ptr[i] : store.ep_ptr[i + 1]] for i in ids]
         T = max(len(t) for t in targets)
         tgt = torch.full((len(ids), T), -1, dtype=torch.long)
         for b, t in enumerate(targets):
             tgt[b, : len(t)] = torch.from_numpy(t)
-        return {"commands": [store.episodes[i].command for i in ids], "first": first, "targets": tgt}
+        return {"commands": [store.commands[i] for i in ids], "first": first, "targets": tgt}
 
     def teacher_forcing(self, batch: dict) -> TeacherOutput:
         st = self._start(batch["commands"], batch["first"])

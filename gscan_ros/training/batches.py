@@ -2,14 +2,15 @@
 
 Teacher forcing needs all T+1 world states of every episode (initial + after each gold
 action, GSCAN_SPEC §8.2). They are replayed once per dataset through the one World
-physics (`Episode.states()`) and kept as the *set-bit indices* of each one-hot state
-(int16, ~20 per state instead of 576 bytes, ~40 bytes per state), which is both the
-cache and the direct input of the sparse visual encoder.
+physics (`Episode.states()`) or read from a bag's decode-once cache, and kept as the
+*set-bit indices* of each one-hot state (int16, ~20 per state instead of 576 bytes,
+~40 bytes per state), which is both the cache and the direct input of the sparse
+visual encoder.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Iterator, Sequence
+from typing import TYPE_CHECKING, Iterable, Iterator, Sequence
 
 import numpy as np
 import torch
@@ -18,26 +19,52 @@ from tqdm import tqdm
 from gscan_ros.data.episode import Episode
 from gscan_ros.language.graph import CommandGraph
 from gscan_ros.model.compositional import Layout, ModuleTable, TeacherBatch
-from gscan_ros.world.types import Action
+from gscan_ros.world.types import GRID_SIZE, NUM_CHANNELS, Action
+
+if TYPE_CHECKING:  # the bag layer imports rclpy's serializer; training must not
+    from gscan_ros.data.bag_cache import EpisodeCache
 
 BATCHING = ("mixed", "per_command")
 
 
 class EpisodeStore:
-    """Episodes + their graphs + cached states and actions, addressable by episode index."""
+    """Commands + their graphs + cached states and actions, addressable by episode index.
+
+    Built from Episodes (states replayed through `World`) or, for bags, from the bag's
+    decode-once cache (`from_cache`: recorded states, no Situation parsed, no replay).
+    """
 
     def __init__(self, episodes: Sequence[Episode], parser, progress: bool = False, chunk: int = 4096):
-        self.episodes = list(episodes)
-        graphs: dict[str, CommandGraph] = {}
-        self.graphs = [graphs.setdefault(ep.command, parser.parse(ep.command)) for ep in self.episodes]
-        self.lengths = np.array([len(ep.actions) + 1 for ep in self.episodes], dtype=np.int64)  # + EOS
-        self.ep_ptr = np.zeros(len(self.episodes) + 1, dtype=np.int64)
+        episodes = list(episodes)
+        chunks = (np.concatenate([ep.states() for ep in episodes[start : start + chunk]])
+                  for start in range(0, len(episodes), chunk))
+        self._fill([ep.command for ep in episodes], [ep.actions for ep in episodes], chunks, parser,
+                   progress=progress, total=-(-len(episodes) // chunk))
+
+    @classmethod
+    def from_cache(cls, cache: "EpisodeCache", parser, progress: bool = False, chunk: int = 4096) -> "EpisodeStore":
+        """The store of a bag's `EpisodeCache`: the same arrays as `EpisodeStore(cache.episodes)`."""
+        store = cls.__new__(cls)
+        n = len(cache)
+        chunks = (cache.stacked_states(range(start, min(start + chunk, n))) for start in range(0, n, chunk))
+        store._fill(cache.commands, [cache.actions(i) for i in range(n)], chunks, parser,
+                    progress=progress, total=-(-n // chunk))
+        return store
+
+    def _fill(self, commands: list[str], actions: list[Sequence[Action]], state_chunks: Iterable[np.ndarray],
+              parser, progress: bool, total: int) -> None:
+        """Parse each distinct command once; keep actions (+EOS) and the set bits of each state.
+
+        `state_chunks` yields the episodes' T+1 states, concatenated in episode order."""
+        self.commands = list(commands)
+        graphs: dict[str, CommandGraph] = {c: parser.parse(c) for c in dict.fromkeys(self.commands)}
+        self.graphs = [graphs[c] for c in self.commands]
+        self.lengths = np.array([len(a) + 1 for a in actions], dtype=np.int64)  # + EOS
+        self.ep_ptr = np.zeros(len(self.commands) + 1, dtype=np.int64)
         self.ep_ptr[1:] = np.cumsum(self.lengths)  # states per episode = T + 1 = length
-        self.actions = np.array([int(a) for ep in self.episodes for a in (*ep.actions, Action.EOS)], dtype=np.int64)
+        self.actions = np.array([int(a) for acts in actions for a in (*acts, Action.EOS)], dtype=np.int64)
         bits, counts = [], []
-        it = range(0, len(self.episodes), chunk)
-        for start in tqdm(it, desc="caching states", unit="chunk", disable=not progress):
-            states = np.concatenate([ep.states() for ep in self.episodes[start : start + chunk]])
+        for states in tqdm(state_chunks, total=total, desc="caching states", unit="chunk", disable=not progress):
             flat = states.reshape(len(states), -1)
             if flat.max(initial=0) > 1:
                 raise ValueError("observations must be one-hot (0/1) encodings")
@@ -46,11 +73,21 @@ class EpisodeStore:
             counts.append(np.bincount(rows, minlength=len(flat)))
         self.bits = np.concatenate(bits) if bits else np.zeros(0, np.int16)
         counts_all = np.concatenate(counts) if counts else np.zeros(0, np.int64)
+        if len(counts_all) != self.ep_ptr[-1]:
+            raise ValueError(f"{len(counts_all)} states for {self.ep_ptr[-1]} steps (T+1 per episode)")
         self.state_ptr = np.zeros(len(counts_all) + 1, dtype=np.int64)
         self.state_ptr[1:] = np.cumsum(counts_all)
 
+    def initial_states(self, ids: Sequence[int]) -> np.ndarray:
+        """uint8[B, 6, 6, 16]: the first state of episodes `ids`, rebuilt from the set bits."""
+        out = np.zeros((len(ids), GRID_SIZE * GRID_SIZE * NUM_CHANNELS), dtype=np.uint8)
+        for row, i in enumerate(ids):
+            state = self.ep_ptr[i]
+            out[row, self.bits[self.state_ptr[state] : self.state_ptr[state + 1]]] = 1
+        return out.reshape(len(ids), GRID_SIZE, GRID_SIZE, NUM_CHANNELS)
+
     def __len__(self) -> int:
-        return len(self.episodes)
+        return len(self.commands)
 
     def graph_table(self, lexicon=None) -> ModuleTable:
         return ModuleTable.from_graphs(self.graphs, lexicon)
@@ -101,8 +138,8 @@ def batch_order(store: EpisodeStore, batch_size: int, batching: str, rng: np.ran
         return [perm[i : i + batch_size] for i in range(0, len(perm), batch_size)]
     if batching == "per_command":
         by_command: dict[str, list[int]] = {}
-        for i, ep in enumerate(store.episodes):
-            by_command.setdefault(ep.command, []).append(i)
+        for i, command in enumerate(store.commands):
+            by_command.setdefault(command, []).append(i)
         chunks = []
         for command in sorted(by_command):
             idx = rng.permutation(np.asarray(by_command[command]))

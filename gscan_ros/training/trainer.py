@@ -109,6 +109,44 @@ def load_split(data: str, split: str, limit: int = 0):
     return out
 
 
+def split_cache(data: str, split: str):
+    """The decode-once `EpisodeCache` of `split` when `data` is a bag or a directory of
+    per-split bags (built on first use, loaded afterwards); None for dataset.txt data or
+    a split without a bag (`load_split` then reads it as before)."""
+    from gscan_ros.data.io import is_bag, split_bags
+
+    bag = data if is_bag(data) else split_bags(data).get(split)
+    if bag is None:
+        return None
+    from gscan_ros.data.bag_cache import load_episode_cache
+
+    return load_episode_cache(bag, [split])
+
+
+def load_train_store(data: str, cfg: TrainConfig, parser, progress: bool = False) -> EpisodeStore:
+    """Teacher-forcing store of the train split: bags from their cache (no replay), else
+    Episodes replayed through World."""
+    cache = split_cache(data, cfg.train_split)
+    if cache is None:
+        return EpisodeStore(load_split(data, cfg.train_split, cfg.max_train_examples), parser, progress=progress)
+    if cfg.max_train_examples:
+        cache = cache.subset(range(min(cfg.max_train_examples, len(cache))))
+    return EpisodeStore.from_cache(cache, parser, progress=progress)
+
+
+def load_dev(data: str, cfg: TrainConfig) -> list:
+    """Validation episodes: a fixed, seeded subset of `max_dev_examples` (0 = all) of the
+    dev split. From a bag, only the chosen episodes' situations are parsed."""
+    cache = split_cache(data, cfg.dev_split)
+    source = cache if cache is not None else load_split(data, cfg.dev_split)
+    pick = range(len(source))
+    if cfg.max_dev_examples and len(source) > cfg.max_dev_examples:
+        pick = sorted(np.random.default_rng(cfg.seed).choice(len(source), cfg.max_dev_examples, replace=False))
+    if cache is not None:
+        return cache.subset(pick).episodes
+    return [source[i] for i in pick]
+
+
 def train(cfg: TrainConfig, data: str, out_dir: str | Path, resume: bool = False, progress: bool = True) -> dict:
     """Train per `cfg` on dataset `data`; returns the final metrics dict."""
     files = RunFiles(Path(out_dir))
@@ -121,14 +159,10 @@ def train(cfg: TrainConfig, data: str, out_dir: str | Path, resume: bool = False
 
     parser = get_parser(cfg.parser, lexicon)
     t0 = time.time()
-    train_eps = load_split(data, cfg.train_split, cfg.max_train_examples)
-    if not train_eps:
+    store = load_train_store(data, cfg, parser, progress=progress)
+    if not len(store):
         raise DatasetFormatError(f"dataset {data!r} has no {cfg.train_split!r} episodes")
-    dev_eps = load_split(data, cfg.dev_split)
-    if cfg.max_dev_examples and len(dev_eps) > cfg.max_dev_examples:
-        pick = np.random.default_rng(cfg.seed).choice(len(dev_eps), cfg.max_dev_examples, replace=False)
-        dev_eps = [dev_eps[i] for i in sorted(pick)]
-    store = EpisodeStore(train_eps, parser, progress=progress)
+    dev_eps = load_dev(data, cfg)
     model = new_model(cfg, parser, lexicon, store)
     optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr, betas=(0.9, 0.999))
     step, cursor, best, elapsed_before = 0, EpochCursor(), -1.0, 0.0

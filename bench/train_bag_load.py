@@ -1,0 +1,49 @@
+"""Train-split load time from bags: first run (decode bag, write cache) vs. later runs (cache).
+
+    .venv/bin/python bench/train_bag_load.py --data /tmp/bagbench [--split train] [--old]
+
+--data is a bag or a directory of per-split bags (`gscan-ros generate --format mcap`).
+The cache file is deleted first, so the first load always decodes. --old also times the
+previous path (stream Episodes from the bag, replay every one through World).
+"""
+from __future__ import annotations
+
+import argparse
+import time
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", required=True)
+    ap.add_argument("--split", default="train")
+    ap.add_argument("--old", action="store_true", help="also time Episodes + World replay (the old path)")
+    args = ap.parse_args()
+
+    import torch
+
+    from gscan_ros.data.bag_cache import cache_path
+    from gscan_ros.data.io import is_bag, split_bags
+    from gscan_ros.language.registry import get_parser
+    from gscan_ros.training.batches import EpisodeStore
+    from gscan_ros.training.config import TrainConfig
+    from gscan_ros.training.trainer import load_split, load_train_store, make_lexicon
+
+    torch.set_num_threads(1)
+    parser = get_parser("semantic", make_lexicon("wordnet"))
+    cfg = TrainConfig(train_split=args.split)
+    bag = args.data if is_bag(args.data) else split_bags(args.data)[args.split]
+    cache_path(bag).unlink(missing_ok=True)
+    for label in ("first load (decode + write cache)", "second load (cache)", "third load (cache)"):
+        t0 = time.perf_counter()
+        store = load_train_store(args.data, cfg, parser)
+        print(f"{label:36s} {time.perf_counter() - t0:7.2f} s  {len(store)} episodes, "
+              f"{store.ep_ptr[-1]} states")
+    print(f"cache file: {cache_path(bag)} ({cache_path(bag).stat().st_size / 2**20:.1f} MiB)")
+    if args.old:
+        t0 = time.perf_counter()
+        store = EpisodeStore(load_split(args.data, args.split), parser)
+        print(f"{'old path (Episodes + World replay)':36s} {time.perf_counter() - t0:7.2f} s  {len(store)} episodes")
+
+
+if __name__ == "__main__":
+    main()

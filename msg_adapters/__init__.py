@@ -1,5 +1,6 @@
 """Pure conversions between gscan_ros domain objects and ROS 2 messages (std_msgs, sensor_msgs)."""
 from msg_adapters.action import action_to_msg, msg_to_action
+from msg_adapters.cdr import cdr_to_msg, msg_to_cdr
 from msg_adapters.command_graph import graph_to_msg, msg_to_graph
 from msg_adapters.errors import MessageFormatError
 from msg_adapters.image import attention_to_msg, image_to_msg, msg_to_attention, msg_to_image
@@ -9,10 +10,12 @@ __all__ = [
     "MessageFormatError",
     "action_to_msg",
     "attention_to_msg",
+    "cdr_to_msg",
     "graph_to_msg",
     "image_to_msg",
     "msg_to_action",
     "msg_to_attention",
+    "msg_to_cdr",
     "msg_to_graph",
     "msg_to_image",
     "msg_to_observation",

@@ -4,13 +4,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
-from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import Image
 from std_msgs.msg import MultiArrayDimension, String, UInt8MultiArray
 
 from gscan_ros.errors import GscanError, InvalidActionError
 from gscan_ros.world.types import Action
 from msg_adapters import (
+    cdr_to_msg,
+    msg_to_cdr,
     MessageFormatError,
     action_to_msg,
     attention_to_msg,
@@ -28,7 +29,7 @@ observations = arrays(np.uint8, (6, 6, 16), elements=st.integers(0, 1))
 @settings(max_examples=30)
 @given(observations)
 def test_observation_round_trips_through_cdr(obs):
-    msg = deserialize_message(serialize_message(observation_to_msg(obs)), UInt8MultiArray)
+    msg = cdr_to_msg(msg_to_cdr(observation_to_msg(obs)), UInt8MultiArray)
     assert np.array_equal(msg_to_observation(msg), obs)
 
 
@@ -73,7 +74,7 @@ def test_observation_rejects_non_uint8_arrays():
 @settings(max_examples=20)
 @given(arrays(np.uint8, st.tuples(st.integers(1, 20), st.integers(1, 20), st.just(3))))
 def test_rgb_image_round_trips(rgb):
-    msg = deserialize_message(serialize_message(image_to_msg(rgb)), Image)
+    msg = cdr_to_msg(msg_to_cdr(image_to_msg(rgb)), Image)
     assert (msg.encoding, msg.height, msg.width, msg.step) == ("rgb8", rgb.shape[0], rgb.shape[1], 3 * rgb.shape[1])
     assert np.array_equal(msg_to_image(msg), rgb)
 
@@ -106,7 +107,7 @@ def test_image_rejects_wrong_encoding_and_size():
 def test_attention_round_trip_is_max_normalized(weights, upsample):
     msg = attention_to_msg(weights, upsample=upsample)
     assert (msg.encoding, msg.height, msg.width) == ("mono8", 6 * upsample, 6 * upsample)
-    back = msg_to_attention(deserialize_message(serialize_message(msg), Image))
+    back = msg_to_attention(cdr_to_msg(msg_to_cdr(msg), Image))
     peak = weights.max()
     expected = weights / peak if peak > 0 else weights
     assert back.dtype == np.float32
@@ -139,7 +140,7 @@ def test_attention_rejects_non_square_image():
 
 @pytest.mark.parametrize("action", list(Action))
 def test_action_round_trips(action):
-    msg = deserialize_message(serialize_message(action_to_msg(action)), String)
+    msg = cdr_to_msg(msg_to_cdr(action_to_msg(action)), String)
     assert msg_to_action(msg) is action
 
 
@@ -147,3 +148,11 @@ def test_eos_token_and_unknown_token():
     assert action_to_msg(Action.EOS).data == "<eos>"
     with pytest.raises(InvalidActionError, match="jump"):
         msg_to_action(String(data="jump"))
+
+
+def test_cdr_round_trip_matches_rclpy_serialization():
+    from rclpy.serialization import serialize_message as rclpy_serialize
+
+    msg = action_to_msg(Action.PULL)
+    assert msg_to_cdr(msg) == rclpy_serialize(msg)
+    assert cdr_to_msg(msg_to_cdr(msg), String).data == "pull"

@@ -1,6 +1,6 @@
 """Episodes as rosbag2 bags: a directory with `metadata.yaml` and `<name>_0.mcap`.
 
-MCAP profile `ros2`, CDR messages (rclpy serialization), `ros2msg` schemas with full
+MCAP profile `ros2`, CDR messages (rclpy serialization via msg_adapters), `ros2msg` schemas with full
 dependency text, zstd chunks. The topics are the live stack's (DESIGN.md), so a
 recorded run and a generated dataset are one format. Episode convention (docs/bags.md):
 
@@ -37,7 +37,6 @@ from mcap.stream_reader import StreamReader
 from mcap.well_known import MessageEncoding, Profile, SchemaEncoding
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
-from rclpy.serialization import deserialize_message, serialize_message
 from std_msgs.msg import String, UInt8MultiArray
 
 from gscan_ros.data.bag_metadata import (
@@ -70,9 +69,11 @@ from gscan_ros.language.graph import CommandGraph
 from gscan_ros.world.types import Action, Situation
 from msg_adapters import (
     action_to_msg,
+    cdr_to_msg,
     graph_to_msg,
     image_to_msg,
     msg_to_action,
+    msg_to_cdr,
     msg_to_observation,
     observation_to_msg,
 )
@@ -282,7 +283,7 @@ class BagWriter:
         channel_id = self._channels.get(topic)
         if channel_id is None:
             channel_id = self._register(topic, msg_type_name(type(msg)))
-        self._mcap.add_message(channel_id, log_time=t_ns, publish_time=t_ns, data=serialize_message(msg))
+        self._mcap.add_message(channel_id, log_time=t_ns, publish_time=t_ns, data=msg_to_cdr(msg))
         self._counts[topic] += 1
         self._start_ns = t_ns if self._start_ns is None else min(self._start_ns, t_ns)
         self._end_ns = t_ns if self._end_ns is None else max(self._end_ns, t_ns)
@@ -418,7 +419,7 @@ class _ObservationDecoder:
         for prefix, (size, shape) in self._prefixes.items():
             if len(data) == len(prefix) + size and data.startswith(prefix):
                 return np.frombuffer(data, np.uint8, count=size, offset=len(prefix)).reshape(shape)
-        observation = msg_to_observation(deserialize_message(data, UInt8MultiArray))
+        observation = msg_to_observation(cdr_to_msg(data, UInt8MultiArray))
         size = observation.size
         if data[len(data) - size :] == observation.tobytes():
             self._prefixes[bytes(data[: len(data) - size])] = (size, observation.shape)
@@ -492,14 +493,14 @@ class BagEpisodeReader(Iterator[Episode]):
                 if done.selected:
                     yield self._finish(path, done, graphs)
             elif topic == COMMAND_GRAPH.name:
-                current.graph_json = deserialize_message(data, String).data
+                current.graph_json = cdr_to_msg(data, String).data
         self._drop(current)
         if self.report.lost_episodes or self.report.lost_messages or self.report.truncated:
             log.warning(self.report.summary())
 
     # -- episode assembly ---------------------------------------------------------------
     def _start(self, path: Path, data: bytes) -> _OpenEpisode:
-        text = deserialize_message(data, String).data
+        text = cdr_to_msg(data, String).data
         try:
             header = json.loads(text)
         except json.JSONDecodeError:
@@ -520,7 +521,7 @@ class BagEpisodeReader(Iterator[Episode]):
 
     def _decode_action(self, path: Path, data: bytes, episode: _OpenEpisode) -> Action:
         try:
-            return msg_to_action(deserialize_message(data, String))
+            return msg_to_action(cdr_to_msg(data, String))
         except GscanError as exc:
             where = episode.header.get("episode_id") if episode.header else "?"
             raise DatasetFormatError(f"{path}: episode {where}: {exc}") from None

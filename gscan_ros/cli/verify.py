@@ -63,6 +63,8 @@ def run(args: argparse.Namespace) -> int:
 
     splits = args.splits.split(",") if args.splits else None
     episodes = iter_episodes(args.dataset, splits)
+    first = next(episodes, None)  # opens the file: a bad path fails before the progress bar
+    episodes = itertools.chain([first] if first is not None else [], episodes)
     if args.limit is not None:
         episodes = itertools.islice(episodes, args.limit)
     checked = mismatches = 0

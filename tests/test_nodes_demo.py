@@ -11,23 +11,27 @@ from gscan_ros.nodes.harness import fresh_domain_id
 from ros_helpers import tiny_checkpoint
 
 
-def test_demo_prints_the_episode_and_writes_bag_and_gif(tmp_path, monkeypatch, capsys):
+def test_demo_prints_the_episodes_and_writes_bag_and_gifs(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("ROS_DOMAIN_ID", str(fresh_domain_id()))
     monkeypatch.delenv("ROS_AUTOMATIC_DISCOVERY_RANGE", raising=False)
     checkpoint = tiny_checkpoint(tmp_path / "tiny.pt")
     out = tmp_path / "demo"
-    code = main(["demo", "--checkpoint", str(checkpoint), "--seed", "1", "--max-steps", "4", "--out", str(out)])
+    code = main(["demo", "--checkpoint", str(checkpoint), "--seed", "1", "--episodes", "2", "--max-steps", "4",
+                  "--out", str(out)])
     printed = capsys.readouterr().out
     assert code == 0
-    command = sample_episode(1).command
-    assert f"command:  {command}" in printed
+    commands = [sample_episode(seed).command for seed in (1, 2)]  # seed, then the seed after reset_world
+    for seed, command in zip((1, 2), commands):
+        assert f"command:  {command}" in printed
+        gold = ", ".join(a.token for a in sample_episode(seed).actions)
+        assert f"planner:  {gold}" in printed
     assert "parse (semantic):" in printed and "match:    " in printed
-    gold = ", ".join(a.token for a in sample_episode(1).actions)
-    assert f"planner:  {gold}" in printed
+    assert "of 2 episodes" in printed
     episodes = list(iter_bag_episodes(out / "bag"))
-    assert [e.command for e in episodes] == [command]
-    with Image.open(out / "episode.gif") as gif:
-        assert gif.n_frames == len(episodes[0].actions) + 1
+    assert [e.command for e in episodes] == commands
+    for i, episode in enumerate(episodes, start=1):
+        with Image.open(out / f"episode_{i}.gif") as gif:
+            assert gif.n_frames == len(episode.actions) + 1
     assert os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"  # set by the demo when unset
 
 

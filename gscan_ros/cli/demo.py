@@ -1,9 +1,11 @@
-"""`gscan-ros demo`: bring the stack up, give it one command, show and save the episode.
+"""`gscan-ros demo`: bring the stack up, give it commands, show and save the episodes.
 
-Runs `gscan-ros bringup`'s nodes in this process with a recorder, sends the command
-that the first situation was generated with (so it is satisfiable) or `--command`,
-prints the parse, the actions and whether they match the planner's demonstration,
-and writes the bag and an animated GIF with the word modules' attention maps.
+Runs `gscan-ros bringup`'s nodes in this process with a recorder. For each of
+`--episodes` situations (the next one after a `reset_world` call) it sends the command
+that the situation was generated with (so it is satisfiable) or `--command`, prints the
+parse, the actions and whether they match the planner's demonstration, and writes one
+bag with every episode and an animated GIF per episode with the word modules'
+attention maps.
 """
 from __future__ import annotations
 
@@ -27,7 +29,8 @@ def register(subparsers) -> None:
     p.add_argument("--command", dest="command_text", default=None,
                    help="command to send (default: the situation's generated one)")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"output directory (default: {DEFAULT_OUT})")
-    p.add_argument("--timeout", type=float, default=120.0, help="seconds to wait for the episode")
+    p.add_argument("--episodes", type=int, default=3, help="episodes to run, each after a reset_world (default: 3)")
+    p.add_argument("--timeout", type=float, default=120.0, help="seconds to wait for each episode")
     p.set_defaults(func=run)
 
 
@@ -39,10 +42,11 @@ class EpisodeResult:
 
 
 def _operator_node(words: list[str]):
-    """A node that sends the command and collects the episode (defined lazily: needs rclpy)."""
+    """A node that sends commands, resets the world and collects episodes (defined lazily: needs rclpy)."""
     from rclpy.node import Node
     from sensor_msgs.msg import Image
     from std_msgs.msg import String
+    from std_srvs.srv import Trigger
 
     from gscan_ros.nodes import common
     from msg_adapters import msg_to_action
@@ -52,14 +56,34 @@ def _operator_node(words: list[str]):
             super().__init__("demo_operator")
             self.result = EpisodeResult()
             self.done = threading.Event()
-            self.recorded = threading.Event()
+            self.recorded = 0  # episodes the recorder reported
             self.command_pub = self.create_publisher(String, common.COMMAND, common.EVENT_QOS)
+            self.reset_client = self.create_client(Trigger, common.RESET_WORLD)
             self.create_subscription(String, common.ACTION, self.on_action, common.EVENT_QOS)
             self.create_subscription(String, common.STATUS, self.on_status, common.EVENT_QOS)
             for word in words:
-                maps = self.result.attention.setdefault(word, [])
                 topic = f"{common.ATTENTION_PREFIX}/{common.topic_token(word)}"
-                self.create_subscription(Image, topic, maps.append, common.EVENT_QOS)
+                self.create_subscription(Image, topic, self._attention_sink(word), common.EVENT_QOS)
+
+        def _attention_sink(self, word: str):
+            return lambda msg: self.result.attention.setdefault(word, []).append(msg)
+
+        def start_episode(self) -> EpisodeResult:
+            self.result = EpisodeResult()
+            self.done.clear()
+            return self.result
+
+        def reset_world(self, timeout: float) -> None:
+            if not self.reset_client.wait_for_service(timeout_sec=timeout):
+                raise GscanError("reset_world service not available")
+            future = self.reset_client.call_async(Trigger.Request())
+            deadline = time.monotonic() + timeout
+            while not future.done():
+                if time.monotonic() > deadline:
+                    raise GscanError(f"reset_world did not answer within {timeout:.0f} s")
+                time.sleep(0.005)
+            if not future.result().success:
+                raise GscanError(f"reset_world failed: {future.result().message}")
 
         def on_action(self, msg: String) -> None:
             try:
@@ -73,7 +97,7 @@ def _operator_node(words: list[str]):
         def on_status(self, msg: String) -> None:
             self.result.status.append(msg.data)
             if msg.data.startswith("episode_recorder_node: recorded episode"):
-                self.recorded.set()
+                self.recorded += 1
 
     return DemoOperator
 
@@ -82,31 +106,42 @@ def run(args: argparse.Namespace) -> int:
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     from std_msgs.msg import String
 
-    from gscan_ros.nodes.episode_recorder_node import EpisodeRecorderNode
     from gscan_ros.data.sources import episode_source
+    from gscan_ros.nodes.episode_recorder_node import EpisodeRecorderNode
     from gscan_ros.nodes.policy_node import PolicyNode
 
+    if args.episodes < 1:
+        raise GscanError(f"--episodes must be at least 1, got {args.episodes}")
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
     options = StackOptions.from_args(args, record=out / "bag", record_images=True)
     dataset = str(args.dataset) if args.dataset else ""
-    episode = episode_source(dataset, args.split, args.index, args.seed).next()  # the world's first situation
-    command = args.command_text or episode.command
+    source = episode_source(dataset, args.split, args.index, args.seed)  # the world node's sequence
+    episodes = [source.next() for _ in range(args.episodes)]
 
+    matched = 0
     with Stack(options) as stack:
-        graph = stack.node(PolicyNode).policy.parse(command)  # CommandError for a bad --command
-        words = list(dict.fromkeys(node.word for node in graph.nodes))
+        policy = stack.node(PolicyNode).policy
+        graphs = [policy.parse(args.command_text or e.command) for e in episodes]  # CommandError for --command
+        words = list(dict.fromkeys(node.word for g in graphs for node in g.nodes))
         operator = _operator_node(words)()
         stack.add(operator)
         stack.start()
         _wait(lambda: stack.node(EpisodeRecorderNode).ready, "episode_recorder_node to receive the world state")
         _wait(lambda: operator.command_pub.get_subscription_count() > 0, "parser_node to subscribe to 'command'")
-        operator.command_pub.publish(String(data=command))
-        if not operator.done.wait(args.timeout):
-            raise GscanError(f"no <eos> within {args.timeout:.0f} s; status: {operator.result.status[-3:]}")
-        operator.recorded.wait(args.timeout)
-        result = operator.result
-    _report(graph.command, graph, episode, result, out)  # the command as gSCAN tokens
+        for i, (episode, graph) in enumerate(zip(episodes, graphs), start=1):
+            if i > 1:
+                operator.reset_world(args.timeout)
+            result = operator.start_episode()
+            operator.command_pub.publish(String(data=graph.command))
+            if not operator.done.wait(args.timeout):
+                raise GscanError(f"no <eos> within {args.timeout:.0f} s; status: {result.status[-3:]}")
+            _wait(lambda: operator.recorded >= i, f"the recorder to store episode {i}", args.timeout)
+            print(f"--- episode {i} of {len(episodes)}")
+            matched += _report(graph, episode, result, out / f"episode_{i}.gif")
+    print(f"matched the planner in {matched} of {len(episodes)} episodes")
+    print(f"bag:      {out / 'bag'}")
+    print(f"output:   {out.resolve()}")
     return 0
 
 
@@ -119,7 +154,8 @@ def _wait(condition, what: str, timeout: float = 30.0) -> None:
         time.sleep(0.005)
 
 
-def _report(command: str, graph, episode, result: EpisodeResult, out: Path) -> None:
+def _report(graph, episode, result: EpisodeResult, gif_path: Path) -> bool:
+    """Print one episode, write its GIF; True when the actions equal the planner's."""
     from gscan_ros.world import demonstrate
     from gscan_ros.world.render import render_frames, save_gif
     from msg_adapters import msg_to_attention
@@ -127,10 +163,10 @@ def _report(command: str, graph, episode, result: EpisodeResult, out: Path) -> N
     actions = result.actions
     moves = [a.token for a in actions[:-1]]
     try:
-        gold = [a.token for a in demonstrate(episode.situation, command)]
+        gold = [a.token for a in demonstrate(episode.situation, graph.command)]
     except GscanError as exc:
         gold, why = None, str(exc)
-    print(f"command:  {command}")
+    print(f"command:  {graph.command}")
     print(f"parse ({graph.parser}):")
     print("  " + graph.pretty().replace("\n", "\n  "))
     print(f"actions:  {', '.join(moves) or '(none)'}  [{len(moves)} actions, then <eos>]")
@@ -139,13 +175,10 @@ def _report(command: str, graph, episode, result: EpisodeResult, out: Path) -> N
     else:
         print(f"planner:  {', '.join(gold)}  [{len(gold)} actions]")
         print(f"match:    {'yes, exact match' if moves == gold else 'no'}")
-
-    steps = len(actions)
     attention = [
         {word: msg_to_attention(maps[t]) for word, maps in result.attention.items() if t < len(maps)}
-        for t in range(steps)
+        for t in range(len(actions))
     ]
-    gif = save_gif(render_frames(episode.situation, actions, attention=attention), out / "episode.gif")
-    print(f"bag:      {out / 'bag'}")
+    gif = save_gif(render_frames(episode.situation, actions, attention=attention), gif_path)
     print(f"gif:      {gif}")
-    print(f"output:   {out.resolve()}")
+    return moves == gold

@@ -2,19 +2,21 @@
 
     .venv/bin/python bench/train_bag_load.py --data /tmp/bagbench [--split train] [--old]
 
---data is a bag or a directory of per-split bags (`gscan-ros generate --format mcap`).
+--data is a bag or a directory of per-split bags (`gscan-ros generate --format mcap`);
+without it, a 10,000-candidate bag directory is generated into a temporary directory.
 The cache file is deleted first, so the first load always decodes. --old also times the
 previous path (stream Episodes from the bag, replay every one through World).
 """
 from __future__ import annotations
 
 import argparse
+import tempfile
 import time
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", required=True)
+    ap.add_argument("--data", default=None, help="bag or bag directory (default: generate one)")
     ap.add_argument("--split", default="train")
     ap.add_argument("--old", action="store_true", help="also time Episodes + World replay (the old path)")
     args = ap.parse_args()
@@ -29,6 +31,11 @@ def main() -> None:
     from gscan_ros.training.trainer import load_split, load_train_store, make_lexicon
 
     torch.set_num_threads(1)
+    if args.data is None:
+        from gscan_ros.data.generate import GenerationConfig, generate_dataset
+
+        args.data = tempfile.mkdtemp(prefix="gscan_bagload_")
+        generate_dataset(args.data, GenerationConfig(seed=1, max_examples=10_000), workers=1, fmt="mcap")
     parser = get_parser("semantic", make_lexicon("wordnet"))
     cfg = TrainConfig(train_split=args.split)
     bag = args.data if is_bag(args.data) else split_bags(args.data)[args.split]

@@ -164,3 +164,18 @@ def test_unknown_module_is_a_graph_error():
     net = make_net()
     with pytest.raises(GraphError, match="zigzag"):
         net.rollout([chain(["while zigzagging", "walk", "circle"])])
+
+
+def test_layouts_of_a_new_table_never_reuse_another_tables_levels():
+    """Level entries are cached per table: a table built after another one was freed (and
+    possibly at the same address) must index its own modules."""
+    import gc
+
+    for graphs_first, graphs_then in [(GRAPHS, GRAPHS[-1:]), (GRAPHS[-1:], GRAPHS)] * 10:
+        first = table(graphs_first)
+        Layout(graphs_first, first)
+        del first
+        gc.collect()
+        then = table(graphs_then)
+        layout = Layout(graphs_then, then)
+        assert int(layout.module.max()) < len(then.specs)

@@ -135,6 +135,7 @@ class ModuleTable:
     def __init__(self, specs: Iterable[ModuleSpec]):
         self.specs: tuple[ModuleSpec, ...] = tuple(sorted(specs, key=lambda s: s.key))
         self.index = {s.key: i for i, s in enumerate(self.specs)}
+        self.level_cache: dict[str, list] = {}  # graph JSON -> _graph_levels(graph, self)
         if len(self.index) != len(self.specs):
             raise ValueError("duplicate module keys")
         bases = np.cumsum([0] + [s.num_heads for s in self.specs])
@@ -457,14 +458,12 @@ class Layout:
         self.occupied = occupied
 
 
-_LEVEL_CACHE: dict[tuple[int, str], list[list[_Entry]]] = {}
-
-
 def _graph_levels(graph: CommandGraph, table: ModuleTable) -> list[list[_Entry]]:
     """Per level the graph's nodes (+ antonym shadows after them), checked against the table."""
-    key = (id(table), graph.to_json())
-    if key in _LEVEL_CACHE:
-        return _LEVEL_CACHE[key]
+    cache = table.level_cache  # lives and dies with the table (an id() key could be reused)
+    key = graph.to_json()
+    if key in cache:
+        return cache[key]
     levels = []
     for level in graph.levels():
         real, shadows = [], []
@@ -484,9 +483,9 @@ def _graph_levels(graph: CommandGraph, table: ModuleTable) -> list[list[_Entry]]
             for other in spec.antonym_of(n.head):
                 shadows.append(_Entry(nid, n.word, m, base + other, children, shadow_of=nid))
         levels.append(real + shadows)
-    if len(_LEVEL_CACHE) > 4096:
-        _LEVEL_CACHE.clear()
-    _LEVEL_CACHE[key] = levels
+    if len(cache) > 4096:
+        cache.clear()
+    cache[key] = levels
     return levels
 
 

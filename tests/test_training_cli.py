@@ -35,13 +35,16 @@ def test_train_resume_evaluate(dataset, tmp_path, kind):
     assert (run / "learning_curve.png").stat().st_size > 0
     out = tmp_path / "eval"
     assert main(["evaluate", "--checkpoint", str(run / "model.pt"), "--data", str(dataset), "--splits", "test",
-                 "visual", "--max-examples", "5", "--out", str(out), "--quiet", "--threads", "1"]) == 0
+                 "visual", "--max-examples", "5", "--out", str(out), "--quiet", "--threads", "1", "--attention"]) == 0
     results = json.loads((out / "results.json").read_text())
     assert set(results["splits"]) == {"test", "visual"}
     assert results["splits"]["visual"]["letter"] == "C" and results["splits"]["test"]["examples"] == 5
     preds = json.loads((out / "predictions.json").read_text())
     assert len(preds) == 10 and {"input", "prediction", "target", "situation", "attention_weights",
                                  "accuracy", "exact_match"} <= set(preds[0])
+    if kind == "compositional":  # per-word maps; the seq2seq baseline has no word modules
+        assert preds[0]["attention_weights"] and all(len(m) == 36 for maps in preds[0]["attention_weights"].values()
+                                                     for m in maps)
     assert (out / "results.md").read_text().count("|") > 10
 
 

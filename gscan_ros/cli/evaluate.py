@@ -12,8 +12,8 @@ def register(subparsers) -> None:
         "evaluate",
         help="closed-loop exact match / token accuracy per split",
         description="The model acts, the World executes, the new state is fed back (batched over many "
-        "episodes). Writes results.json, results.md and predictions.json (gSCAN prediction format with "
-        "per-word attention maps). Split letters: A test, B visual_easier, C visual, D situational_1, "
+        "episodes). Writes results.json, results.md and predictions.json (gSCAN prediction format; "
+        "per-word attention maps with --attention). Split letters: A test, B visual_easier, C visual, D situational_1, "
         "E situational_2, F contextual, G adverb_1, H adverb_2, I target_lengths. For G at k = 5/10/50, "
         "train models on data made with `gscan-ros generate --k-shot K` and evaluate each.",
     )
@@ -24,6 +24,8 @@ def register(subparsers) -> None:
     p.add_argument("--out", default="runs/eval", metavar="DIR", help="output directory (default: runs/eval)")
     p.add_argument("--batch-size", type=int, default=256, help="episodes decoded together (default: 256)")
     p.add_argument("--no-predictions", action="store_true", help="skip predictions.json")
+    p.add_argument("--attention", action="store_true",
+                   help="store every word's attention map per step in predictions.json (large: ~85 kB per episode)")
     p.add_argument("--threads", type=int, default=0, help="torch threads (0 = torch default)")
     p.add_argument("--seed", type=int, default=0, help="seed of the --max-examples subset")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -57,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
         episodes += eps
     start = time.time()
     result = evaluate_episodes(policy, episodes, batch_size=args.batch_size,
-                               record_attention=not args.no_predictions, progress=not args.quiet)
+                               record_attention=args.attention and not args.no_predictions, progress=not args.quiet)
     seconds = time.time() - start
     meta = {"checkpoint": str(args.checkpoint or default_checkpoint_path()), "parser": policy.parser_name,
             "data": str(args.data), "max_examples": args.max_examples, "episodes": len(episodes),

@@ -4,7 +4,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from gscan_ros.model.compositional import Layout, ModelConfig, SlotGroups, _drop_mask, _ReluDrop, sparse_states
+from gscan_ros.model.compositional import Layout, ModelConfig, SlotGroups, _keep_mask, _ReluDrop, sparse_states
 from tests.model_support import GRAPHS, binary, random_states
 from tests.test_model_compositional import make_net
 
@@ -89,11 +89,11 @@ def test_leaf_maps_match_the_full_formula_with_the_state_term():
 def test_relu_drop_matches_relu_times_mask_with_gradients():
     gen = torch.Generator().manual_seed(1)
     x = torch.randn(3, 36, 150, generator=gen)
-    drop = torch.rand(3, 36, 150, generator=gen) < 0.3
+    keep = torch.rand(3, 36, 150, generator=gen) >= 0.3
     upstream = torch.randn(3, 36, 150, generator=gen)
     fast_in, ref_in = x.clone().requires_grad_(), x.clone().requires_grad_()
-    fast = _ReluDrop.apply(fast_in * 1.0, drop)  # in place on a non-leaf, like the encoder
-    ref = F.relu(ref_in) * (~drop)
+    fast = _ReluDrop.apply(fast_in * 1.0, keep.view(torch.uint8))  # in place on a non-leaf, like the encoder
+    ref = F.relu(ref_in) * keep
     torch.testing.assert_close(fast, ref)
     (fast * upstream).sum().backward()
     (ref * upstream).sum().backward()
@@ -102,10 +102,11 @@ def test_relu_drop_matches_relu_times_mask_with_gradients():
 
 def test_drop_mask_rate_and_seeding():
     torch.manual_seed(3)
-    mask, p = _drop_mask(200_000, 0.1)
-    assert abs(p - 0.1) < 1e-4 and abs(mask.float().mean().item() - p) < 0.005
+    keep, p = _keep_mask(200_001, 0.1)  # not a multiple of 4: the last 64-bit word is cut
+    assert keep.dtype == torch.uint8 and keep.numel() == 200_001 and set(keep.unique().tolist()) == {0, 1}
+    assert abs(p - 0.1) < 1e-4 and abs(1 - keep.float().mean().item() - p) < 0.005
     torch.manual_seed(3)
-    assert torch.equal(_drop_mask(200_000, 0.1)[0], mask)  # torch.manual_seed fixes the mask
+    assert torch.equal(_keep_mask(200_001, 0.1)[0], keep)  # torch.manual_seed fixes the mask
 
 
 def test_training_encoder_is_dropout_of_the_dense_reference():

@@ -211,9 +211,16 @@ class VisualEncoder(nn.Module):
         g = cfg.grid_size
         r = torch.arange(g).repeat_interleave(g)  # cell index -> row
         c = torch.arange(g).repeat(g)  # cell index -> col
-        # Offset of input cell q relative to output cell p, shifted into [0, 2g-2].
-        self.register_buffer("_dr", (r[:, None] - r[None, :] + g - 1), persistent=False)
-        self.register_buffer("_dc", (c[:, None] - c[None, :] + g - 1), persistent=False)
+        # Offset of input cell q relative to output cell p, shifted into [0, 2g-2]: the
+        # kernel-canvas position that links them, one per (q, p) pair.
+        offset = ((r[:, None] - r[None, :] + g - 1) * (2 * g - 1) + (c[:, None] - c[None, :] + g - 1)).reshape(-1)
+        pairs = offset.numel()
+        # [(q, p), canvas position] 0/1: the Toeplitz matrix is this times the canvas, a
+        # sparse matmul in both directions (an indexing gather would backprop through a
+        # serial accumulating index_put, ~5x slower).
+        self._placement = torch.sparse_coo_tensor(
+            torch.stack([torch.arange(pairs), offset]), torch.ones(pairs), (pairs, (2 * g - 1) ** 2), check_invariants=True
+        ).coalesce()
 
     def _kernel_bank(self) -> torch.Tensor:
         """All branches' weights centred on a (2g-1)^2 canvas: [F, C, 2g-1, 2g-1]."""
@@ -231,9 +238,11 @@ class VisualEncoder(nn.Module):
 
     def toeplitz(self) -> torch.Tensor:
         """[cells*C, cells*F]: row (cell q, channel k) -> contribution to every (cell p, feature o)."""
-        w = self._kernel_bank()[:, :, self._dr, self._dc]  # [F, C, q, p]
-        n_in = self.cfg.cells * self.cfg.in_channels
-        return w.permute(2, 1, 3, 0).reshape(n_in, -1)
+        bank = self._kernel_bank()  # [F, C, 2g-1, 2g-1]
+        canvas = bank.permute(2, 3, 1, 0).reshape(-1, bank.shape[1] * bank.shape[0])  # [position, (k, o)]
+        w = torch.sparse.mm(self._placement, canvas)  # [(q, p), (k, o)]
+        cells, C = self.cfg.cells, self.cfg.in_channels
+        return w.view(cells, cells, C, -1).permute(0, 2, 1, 3).reshape(cells * C, -1)
 
     @property
     def bias(self) -> torch.Tensor:
@@ -266,17 +275,18 @@ class VisualEncoder(nn.Module):
         is_bit = torch.ones(bags.numel(), dtype=torch.bool)
         is_bit[starts] = False
         bags[is_bit] = indices
-        drop = None
+        keep = None
         if self.training and self.cfg.cnn_dropout > 0:
-            drop, p = _drop_mask(n * self.cfg.cells * self.cfg.feature_dim, self.cfg.cnn_dropout)
+            keep, p = _keep_mask(n * self.cfg.cells * self.cfg.feature_dim, self.cfg.cnn_dropout)
             weight = self._weight() * (1.0 / (1.0 - p))
         else:
             weight = self._weight() if torch.is_grad_enabled() else self._inference_weight()
         flat = F.embedding_bag(bags, weight, starts, mode="sum")
-        feats = flat.view(n, self.cfg.cells, self.cfg.feature_dim)
         if not torch.is_grad_enabled():
-            return feats.clamp_min_(0) if drop is None else feats.clamp_min_(0).masked_fill_(drop.view_as(feats), 0)
-        return _ReluDrop.apply(feats, drop)
+            flat = flat.relu_() if keep is None else flat.mul_(keep.view_as(flat)).relu_()
+        else:  # in place on the bag's output itself: on a view, autograd would copy the gradient
+            flat = _ReluDrop.apply(flat, keep)
+        return flat.view(n, self.cfg.cells, self.cfg.feature_dim)
 
     def dense(self, states: torch.Tensor) -> torch.Tensor:
         """Reference path on float/uint8 [N, g, g, C] states -> [N, cells, F]."""
@@ -288,26 +298,32 @@ class VisualEncoder(nn.Module):
 _DROP_LEVELS = 1 << 16
 
 
-def _drop_mask(size: int, p: float) -> tuple[torch.Tensor, float]:
-    """A Bernoulli(p) drop mask of `size` elements and its exact p (a multiple of 2^-16).
+def _keep_mask(size: int, p: float) -> tuple[torch.Tensor, float]:
+    """A uint8 keep mask (1 with probability 1-p) of `size` elements and the exact p it
+    drops with (a multiple of 2^-16).
 
-    Drawn with numpy's PCG64 from a seed taken from torch's generator (so `torch.manual_seed`
-    still fixes it): ~7x faster than `bernoulli_` on the 20M-element feature tensors.
+    16-bit draws are cut from the raw 64-bit words of numpy's PCG64, seeded from torch's
+    generator (so `torch.manual_seed` still fixes it): ~15x faster than `bernoulli_` on
+    the 20M-element feature tensors. The bool result is viewed as uint8 at no cost, and
+    multiplying by uint8 is faster than `where` or `masked_fill` with a bool mask.
     """
     cut = round(p * _DROP_LEVELS)
     rng = np.random.default_rng(int(torch.randint(0, 2**62, (1,))))
-    draws = rng.integers(0, _DROP_LEVELS, size=size, dtype=np.uint16)
-    return torch.from_numpy(draws < cut), cut / _DROP_LEVELS
+    draws = rng.bit_generator.random_raw(-(-size // 4)).view(np.uint16)[:size]
+    return torch.from_numpy(draws >= cut).view(torch.uint8), cut / _DROP_LEVELS
 
 
 class _ReluDrop(torch.autograd.Function):
-    """ReLU, then zero the dropped elements. The backward needs only the output (an
-    element passes gradient iff it is > 0) and runs as one fused `threshold_backward`;
-    both directions are single passes over the [N, cells, F] features."""
+    """Zero the dropped elements and ReLU, in place on the (otherwise unused) encoder
+    output. The backward needs only the output (an element passes gradient iff it is
+    > 0) and runs as one fused `threshold_backward`."""
 
     @staticmethod
-    def forward(ctx, x: torch.Tensor, drop: torch.Tensor | None) -> torch.Tensor:
-        y = x.relu() if drop is None else torch.where(drop.view_as(x), 0.0, x).relu_()
+    def forward(ctx, x: torch.Tensor, keep: torch.Tensor | None) -> torch.Tensor:
+        if keep is not None:
+            x.mul_(keep.view_as(x))
+        y = x.relu_()
+        ctx.mark_dirty(x)
         ctx.save_for_backward(y)
         return y
 
@@ -413,33 +429,32 @@ class Layout:
             lo += w
         B, J = len(graphs), lo
         self.batch, self.num_slots = B, J
-        unit = torch.zeros(B, J, dtype=torch.long)
-        module = torch.zeros(B, J, dtype=torch.long)
-        child = torch.zeros(B, J, S, dtype=torch.long)
-        slot_mask = torch.zeros(B, J, S)
-        src = torch.arange(J).repeat(B, 1)
-        root = torch.zeros(B, dtype=torch.long)
-        occupied = torch.zeros(B, J, dtype=torch.bool)
+        # Filled in numpy (element writes to torch tensors cost ~50x more), converted once.
+        unit = np.zeros((B, J), dtype=np.int64)
+        module = np.zeros((B, J), dtype=np.int64)
+        child = np.zeros((B, J, S), dtype=np.int64)
+        slot_mask = np.zeros((B, J, S), dtype=np.float32)
+        src = np.tile(np.arange(J), (B, 1))
+        root = np.zeros(B, dtype=np.int64)
+        occupied = np.zeros((B, J), dtype=bool)
         pairs: list[list[tuple[int, int]]] = []
         self.words: list[list[tuple[int, str]]] = []
+        slots_of = [s.slots for s in table.specs]
         for b, (g, levels) in enumerate(zip(graphs, per_graph)):
             slot_of: dict[int, int] = {}
             shadows: list[tuple[int, _Entry]] = []
-            for li, level in enumerate(levels):
-                for pos, e in enumerate(level):
-                    j = self.blocks[li][0] + pos
+            for (lo, _), level in zip(self.blocks, levels):
+                for j, e in enumerate(level, lo):
                     unit[b, j], module[b, j] = e.unit, e.module
                     occupied[b, j] = True
                     if e.shadow_of is None:
                         slot_of[e.node] = j
                     else:
                         shadows.append((j, e))
-            for li, level in enumerate(levels):
-                for pos, e in enumerate(level):
-                    j = self.blocks[li][0] + pos
+            for (lo, _), level in zip(self.blocks, levels):
+                for j, e in enumerate(level, lo):
                     owner = e.node if e.shadow_of is None else e.shadow_of
-                    slots = table.specs[e.module].slots
-                    slot_mask[b, j, :slots] = 1.0
+                    slot_mask[b, j, : slots_of[e.module]] = 1.0
                     for s, c in enumerate(e.children):
                         child[b, j, s] = slot_of[c] + 1
                     src[b, j] = slot_of[owner]
@@ -447,15 +462,16 @@ class Layout:
             root[b] = slot_of[g.root]
             self.words.append([(slot_of[n.id], n.word) for n in g.nodes])
         P = max((len(p) for p in pairs), default=0)
-        pair_t = torch.zeros(B, P, 2, dtype=torch.long)
-        pair_mask = torch.zeros(B, P)
+        pair_t = np.zeros((B, P, 2), dtype=np.int64)
+        pair_mask = np.zeros((B, P), dtype=np.float32)
         for b, ps in enumerate(pairs):
-            for i, p in enumerate(ps):
-                pair_t[b, i] = torch.tensor(p)
-                pair_mask[b, i] = 1.0
-        self.unit, self.module, self.child, self.slot_mask = unit, module, child, slot_mask
-        self.src, self.root, self.pairs, self.pair_mask = src, root, pair_t, pair_mask
-        self.occupied = occupied
+            if ps:
+                pair_t[b, : len(ps)] = ps
+                pair_mask[b, : len(ps)] = 1.0
+        t = torch.from_numpy
+        self.unit, self.module, self.child, self.slot_mask = t(unit), t(module), t(child), t(slot_mask)
+        self.src, self.root, self.pairs, self.pair_mask = t(src), t(root), t(pair_t), t(pair_mask)
+        self.occupied = t(occupied)
 
 
 def _graph_levels(graph: CommandGraph, table: ModuleTable) -> list[list[_Entry]]:
@@ -661,7 +677,7 @@ class CompositionalNetwork(nn.Module):
              proj: torch.Tensor | None = None) -> StepResult:
         """Advance every slot one decoding step on cell features `feats` [n, cells, F].
 
-        `proj` [n, J, cells, S*A]: the slots' feature projections, when precomputed
+        `proj` [n, cells, J, S, A]: the slots' feature projections, when precomputed
         (teacher forcing computes them for all steps at once, see `_projections`).
         """
         cfg = self.cfg
@@ -674,13 +690,11 @@ class CompositionalNetwork(nn.Module):
             k, S = child.shape[1], child.shape[2]
             parts = []
             if cfg.uses_attention:
-                pool = torch.cat(maps_done, 1)
-                cmaps = pool.gather(1, child.reshape(n, k * S, 1).expand(-1, -1, cells)).view(n, k, S, cells)
                 if proj is None:
-                    p = torch.bmm(feats, bound.feat_w(b_i)).view(n, cells, k, -1).transpose(1, 2)
+                    p = torch.bmm(feats, bound.feat_w(b_i)).view(n, cells, k, S, -1)
                 else:
-                    p = proj[:, lo:hi]
-                maps_done.append(self._attend(blk, cmaps, p))
+                    p = proj[:, :, lo:hi]
+                maps_done.append(self._attend(blk, _child_maps(maps_done, child), p))
                 if not cfg.passes_state:
                     continue  # the root's GRU runs after the loop
                 parts.append(torch.bmm(maps_done[-1], feats))  # attention-weighted feature sum
@@ -710,20 +724,21 @@ class CompositionalNetwork(nn.Module):
         overlap = self._overlap(maps, top) if maps is not None and top["pairs"].shape[1] else feats.new_zeros(n)
         return StepResult(logits, new_hidden, maps, overlap)
 
-    def _attend(self, blk, cmaps, proj) -> torch.Tensor:
+    @staticmethod
+    def _attend(blk, cmaps, proj) -> torch.Tensor:
         """softmax_cells( W_out . ReLU([ (feats*map_s) W_s + b_s ]_s ++ [h W_h + b_h]) + b ) -> [n, k, cells].
 
-        (feats * map) W == map * (feats W): `proj` [n, k, cells, S*A] holds every slot's
-        feature projection, weighted here by the child's map. The hidden-state input
-        (`att_state_*`, its `att_out_w` column and `att_out_b`) is broadcast over the
-        cells, so it adds the same constant to every cell's logit and cancels in the
-        softmax: it is not computed (GSCAN_SPEC §8.4's maps are exactly the same).
+        (feats * map) W == map * (feats W): `proj` [n, cells, k, S, A] holds every slot's
+        feature projection, weighted here by the child's map `cmaps` [n, k, S, cells].
+        The hidden-state input (`att_state_*`, its `att_out_w` column and `att_out_b`) is
+        broadcast over the cells, so it adds the same constant to every cell's logit and
+        cancels in the softmax: it is not computed (GSCAN_SPEC §8.4's maps are exactly
+        the same).
         """
         n, k, S, cells = cmaps.shape
-        proj = proj.reshape(n, k, cells, S, -1)  # a view in teacher forcing
-        hidden = torch.addcmul(blk["feat_b"][:, :, None], proj, cmaps.transpose(2, 3)[..., None]).relu_()
-        score = (hidden.view(n, k, cells, -1) * blk["score_w"][:, :, None]).sum(-1)  # [n, k, cells]
-        return torch.softmax(score, 2)
+        hidden = torch.addcmul(blk["feat_b"][:, None], proj, cmaps.permute(0, 3, 1, 2)[..., None]).relu_()
+        score = (hidden.view(n, cells, k, -1) * blk["score_w"][:, None]).sum(-1)  # [n, cells, k]
+        return torch.softmax(score, 1).transpose(1, 2)
 
     @staticmethod
     def _overlap(maps: torch.Tensor, top: dict) -> torch.Tensor:
@@ -740,10 +755,85 @@ class CompositionalNetwork(nn.Module):
 
     # -- teacher forcing
     def teacher_forcing(self, batch: "TeacherBatch") -> "TeacherOutput":
-        """Loss over a batch whose rows are sorted by length, states packed time-major."""
+        """Loss over a batch whose rows are sorted by length, states packed time-major.
+
+        With message='attention' the maps depend on the world state only (see `step`), so
+        every step of every row is computed at once and only the root's GRU recurs
+        (`_teacher_forcing_parallel`); with pass_state the slots' states feed their
+        parents and the batch runs step by step (`_teacher_forcing_stepwise`).
+        """
+        if self.cfg.passes_state:
+            return self._teacher_forcing_stepwise(batch)
+        return self._teacher_forcing_parallel(batch)
+
+    def _loss(self, batch: "TeacherBatch", logits: torch.Tensor, overlap: torch.Tensor) -> "TeacherOutput":
+        valid = batch.valid.float()
+        nll = F.cross_entropy(logits, batch.targets.clamp(min=0), reduction="none") * valid
+        overlap = overlap * valid  # quirk Q4: padded steps add nothing
+        per_step = nll + self.cfg.antonym_weight * overlap
+        per_example = torch.zeros(batch.layout.batch).index_add(0, batch.rows, per_step) / batch.lengths
+        return TeacherOutput(per_example.mean(), logits, nll, overlap)
+
+    def _teacher_forcing_parallel(self, batch: "TeacherBatch") -> "TeacherOutput":
+        """Every packed step at once: a handful of large ops per level, then the root GRU
+        as one packed-sequence `aten::gru` call per root module."""
+        cfg = self.cfg
+        bound = self.bind(batch.layout)
+        rm = _RowMajor(batch)
+        feats = self.encoder(*rm.bags)  # [N, cells, F], row-major
+        proj = self._projections(bound, feats, rm.sizes)
+        rows = rm.rows
+        n, cells = feats.shape[0], cfg.cells
+        maps_done: list[torch.Tensor] = [feats.new_ones(n, 1, cells)]
+        # split, not slices: its backward is one concatenation, not a zero-filled full-size
+        # gradient per block.
+        proj_blocks = proj.split([hi - lo for lo, hi in bound.spans], 2)
+        for blk, p in zip(bound.blocks, proj_blocks):
+            step_blk = {key: blk[key].index_select(0, rows) for key in ("feat_b", "score_w")}
+            cmaps = _child_maps(maps_done, blk["child"].index_select(0, rows))
+            maps_done.append(self._attend(step_blk, cmaps, p))
+        maps = torch.cat(maps_done[1:], 1)
+        top = bound.top
+        root = top["root"].index_select(0, rows)[:, None, None]
+        x = torch.bmm(maps.gather(1, root.expand(-1, 1, cells)), feats)[:, 0]  # [N, F]
+        logits = self._root_gru_logits(x.index_select(0, rm.to_time_major), batch, top["root_module"])
+        pairs = {"pairs": top["pairs"].index_select(0, rows), "pair_mask": top["pair_mask"].index_select(0, rows)}
+        overlap = self._overlap(maps, pairs) if pairs["pairs"].shape[1] else feats.new_zeros(n)
+        return self._loss(batch, logits, overlap.index_select(0, rm.to_time_major))
+
+    def _root_gru_logits(self, x: torch.Tensor, batch: "TeacherBatch", root_module: torch.Tensor) -> torch.Tensor:
+        """Action logits [N, actions] of the root's GRU over its inputs x [N, F], packed time-major.
+
+        Layer by layer: the input gates of every step at once (one matmul per root module),
+        then the recurrence over time for all rows together, each row with its module's
+        recurrent weights gathered once ([B, H, 3H], small). The rows alive at step t are
+        a prefix (rows sorted by length), so a step works on prefix slices.
+        """
+        bank, H = self.bank, self.cfg.rnn_dim
+        step_module = root_module.index_select(0, batch.rows)
+        groups = _ModuleGroups(step_module)
+        inp = x
+        for layer in range(self.cfg.rnn_layers):
+            gx = groups.linear(inp, bank.gru_x[layer], bank.gru_bx[layer])  # [N, 3H]
+            wh = bank.gru_h[layer].index_select(0, root_module)  # [B, H, 3H]
+            bh = bank.gru_bh[layer].index_select(0, root_module)[:, None]  # [B, 1, 3H]
+            h, outs = x.new_zeros(len(root_module), 1, H), []
+            for n, gx_t in zip(batch.active, gx.split(batch.active)):
+                h = h[:n]
+                h = _gru_update(gx_t[:, None], torch.baddbmm(bh[:n], h, wh[:n]), h)
+                outs.append(h[:, 0])
+            inp = torch.cat(outs)
+        return groups.linear(inp, bank.out_w, bank.out_b)
+
+    def _teacher_forcing_stepwise(self, batch: "TeacherBatch") -> "TeacherOutput":
+        """Step by step through `step` (every slot's GRU runs)."""
         bound = self.bind(batch.layout)
         feats = self.encoder(batch.indices, batch.offsets)
-        proj = self._projections(batch, feats).split(batch.active) if self.cfg.uses_attention else None
+        proj = None
+        if self.cfg.uses_attention:
+            rm = _RowMajor(batch)
+            proj = self._projections(bound, feats.index_select(0, rm.order), rm.sizes)
+            proj = proj.index_select(0, rm.to_time_major).split(batch.active)
         # split (not per-step slicing): its backward is one concatenation, not one
         # full-size zero-filled gradient per step.
         feats = feats.split(batch.active)
@@ -757,78 +847,88 @@ class CompositionalNetwork(nn.Module):
             logits.append(res.logits)
             overlaps.append(res.overlap)
             hidden = res.hidden
-        logits_t = torch.cat(logits)
-        valid = batch.valid.float()
-        nll = F.cross_entropy(logits_t, batch.targets.clamp(min=0), reduction="none") * valid
-        overlap = torch.cat(overlaps) * valid  # quirk Q4: padded steps add nothing
-        per_step = nll + self.cfg.antonym_weight * overlap
-        per_example = torch.zeros(batch.layout.batch).index_add(0, batch.rows, per_step) / batch.lengths
-        return TeacherOutput(per_example.mean(), logits_t, nll, overlap)
+        return self._loss(batch, torch.cat(logits), torch.cat(overlaps))
 
-    def _projections(self, batch: "TeacherBatch", feats: torch.Tensor) -> torch.Tensor:
-        """[steps, J, cells, S*A]: every occupied slot's feature projection at every real step.
+    def _projections(self, bound: Bound, feats: torch.Tensor, sizes: list[int]) -> torch.Tensor:
+        """[N, cells, J, S, A]: every slot's feature projection at every step, for row-major
+        features (row b's steps are `sizes[b]` consecutive entries).
 
-        Grouped by attention unit, each group is one large matmul over all its steps
-        (instead of a small per-slot bmm inside the time loop); unoccupied slots and
-        padded steps stay zero.
+        Each row gathers its slots' weights once ([B, F, J*S*A], a few MB); one matmul
+        per row then projects all its steps for all its slots, reading the features once.
         """
-        layout, bank = batch.layout, self.bank
-        steps = batch.rows.shape[0]
-        J, S, A, cells = layout.num_slots, bank.max_slots, self.cfg.att_dim, self.cfg.cells
-        use = layout.occupied[batch.rows] & batch.valid[:, None]  # [steps, J]
-        step_idx, slot_idx = use.nonzero(as_tuple=True)
-        units = layout.unit[batch.rows[step_idx], slot_idx]
-        order = torch.argsort(units, stable=True)
-        step_idx, slot_idx, units = step_idx[order], slot_idx[order], units[order]
-        present, counts = torch.unique_consecutive(units, return_counts=True)
-        groups = list(zip(present.tolist(), step_idx.split(counts.tolist()), slot_idx.split(counts.tolist())))
-        return _SlotProjection.apply(feats, bank.att_feat_w, groups, (steps, J, cells, S * A))
+        units = torch.cat([blk["att_unit"] for blk in bound.blocks], 1).clamp(min=0)  # [B, J]
+        B, J = units.shape
+        _, S, Fd, A = self.bank.att_feat_w.shape
+        # index_select: its backward is index_add_, not a serial accumulating index_put
+        w = self.bank.att_feat_w.index_select(0, units.reshape(-1)).view(B, J, S, Fd, A)
+        w = w.permute(0, 3, 1, 2, 4).reshape(B, Fd, J * S * A)
+        return _SegmentMatmul.apply(feats, w, sizes).view(feats.shape[0], feats.shape[1], J, S, A)
 
 
-class _SlotProjection(torch.autograd.Function):
-    """out[s, j] = feats[s] @ W[unit]: the projection of step s's features for slot j, for
-    every (step, slot, unit) of `groups` (a list of (unit, step ids, slot ids)).
+def _child_maps(maps_done: list[torch.Tensor], child: torch.Tensor) -> torch.Tensor:
+    """[n, k, S, cells]: the maps feeding each slot's arguments. `maps_done` holds the
+    all-ones 'no child' map then every finished block's maps; `child` [n, k, S] indexes
+    that pool (0 = no child, j+1 = slot j)."""
+    pool = torch.cat(maps_done, 1)
+    n, k, S = child.shape
+    cells = pool.shape[-1]
+    return pool.gather(1, child.reshape(n, k * S, 1).expand(-1, -1, cells)).view(n, k, S, cells)
 
-    Works through each unit's steps in chunks of `CHUNK` gathered feature maps (~1.4 MB,
-    cache-resident), so neither direction materialises the [pairs, cells, F] gather
-    (~4x the feature tensor) that a plain `index_select` + `mm` would write and read.
-    """
 
-    CHUNK = 64
+class _RowMajor:
+    """A time-major TeacherBatch's steps reordered row by row (each row's steps
+    consecutive, in time order), as the per-row projection matmuls want them."""
+
+    def __init__(self, batch: "TeacherBatch"):
+        self.order = torch.argsort(batch.rows, stable=True)  # row-major position -> time-major step
+        self.to_time_major = torch.empty_like(self.order)
+        self.to_time_major[self.order] = torch.arange(self.order.numel())
+        self.rows = batch.rows.index_select(0, self.order)
+        self.sizes = torch.bincount(batch.rows, minlength=batch.layout.batch).tolist()
+        self._batch = batch
+
+    @property
+    def bags(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(indices, offsets) of the encoder's bags in row-major order."""
+        offsets, indices = self._batch.offsets, self._batch.indices
+        counts = torch.diff(offsets, append=torch.tensor([indices.numel()]))
+        counts, starts = counts[self.order], offsets[self.order]
+        new_offsets = torch.zeros_like(offsets)
+        new_offsets[1:] = counts.cumsum(0)[:-1]
+        gather = torch.repeat_interleave(starts - new_offsets, counts) + torch.arange(int(counts.sum()))
+        return indices[gather], new_offsets
+
+
+class _SegmentMatmul(torch.autograd.Function):
+    """out[seg b] = x[seg b] @ w[b]: x [N, R, K] cut along N into consecutive segments of
+    `sizes`, w [B, K, W] one matrix per segment -> [N, R, W]. Both directions are one
+    matmul per segment writing straight into its slice of the result."""
 
     @staticmethod
-    def forward(ctx, feats, weight, groups, shape):
-        ctx.save_for_backward(feats, weight)
-        ctx.groups = groups
-        cells, width = shape[2:]
-        fd = feats.shape[-1]
-        out = feats.new_zeros(shape)
-        for u, step_ids, slot_ids in groups:
-            w = weight[u].permute(1, 0, 2).reshape(fd, width)
-            for s, j in zip(step_ids.split(_SlotProjection.CHUNK), slot_ids.split(_SlotProjection.CHUNK)):
-                rows = feats.index_select(0, s).view(-1, fd)
-                out[s, j] = (rows @ w).view(-1, cells, width)
+    def forward(ctx, x, w, sizes):
+        ctx.save_for_backward(x, w)
+        ctx.sizes = sizes
+        out = x.new_empty(x.shape[0], x.shape[1], w.shape[2])
+        k = x.shape[-1]
+        for b, (xs, os) in enumerate(zip(x.split(sizes), out.split(sizes))):
+            torch.mm(xs.view(-1, k), w[b], out=os.view(-1, w.shape[2]))
         return out
 
     @staticmethod
     def backward(ctx, grad):
-        feats, weight = ctx.saved_tensors
-        cells, fd = feats.shape[1:]
-        width = grad.shape[-1]
-        grad_feats = torch.zeros_like(feats) if ctx.needs_input_grad[0] else None
-        grad_w = torch.zeros_like(weight) if ctx.needs_input_grad[1] else None
-        for u, step_ids, slot_ids in ctx.groups:
-            w = weight[u].permute(1, 0, 2).reshape(fd, width)
-            acc = feats.new_zeros(fd, width)
-            for s, j in zip(step_ids.split(_SlotProjection.CHUNK), slot_ids.split(_SlotProjection.CHUNK)):
-                g = grad[s, j].view(-1, width)
-                if grad_w is not None:
-                    acc.addmm_(feats.index_select(0, s).view(-1, fd).T, g)
-                if grad_feats is not None:
-                    grad_feats.index_add_(0, s, (g @ w.T).view(-1, cells, fd))
+        x, w = ctx.saved_tensors
+        grad = grad.contiguous()
+        k, width = x.shape[-1], w.shape[2]
+        grad_x = torch.empty_like(x) if ctx.needs_input_grad[0] else None
+        grad_w = torch.empty_like(w) if ctx.needs_input_grad[1] else None
+        gx_parts = grad_x.split(ctx.sizes) if grad_x is not None else [None] * len(ctx.sizes)
+        for b, (xs, gs, gx) in enumerate(zip(x.split(ctx.sizes), grad.split(ctx.sizes), gx_parts)):
+            g = gs.view(-1, width)
+            if gx is not None:
+                torch.mm(g, w[b].T, out=gx.view(-1, k))
             if grad_w is not None:
-                grad_w[u] = acc.view(fd, weight.shape[1], weight.shape[3]).permute(1, 0, 2)
-        return grad_feats, grad_w, None, None
+                torch.mm(xs.reshape(-1, k).T, g, out=grad_w[b])
+        return grad_x, grad_w, None
 
 
 @dataclass
@@ -859,10 +959,29 @@ class TeacherOutput:
     overlap: torch.Tensor  # [steps], unweighted
 
 
+class _ModuleGroups:
+    """Packed steps grouped by the module whose weights apply to them."""
+
+    def __init__(self, step_module: torch.Tensor):
+        order = torch.argsort(step_module, stable=True)
+        self.modules, counts = torch.unique_consecutive(step_module.index_select(0, order), return_counts=True)
+        self.members = order.split(counts.tolist())
+        self.inverse = torch.empty_like(order)
+        self.inverse[order] = torch.arange(order.numel())
+
+    def linear(self, x: torch.Tensor, w: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        """x [N, in] -> [N, out], each step through its module's w [M, in, out] + b [M, out]."""
+        parts = [torch.addmm(b[m], x.index_select(0, idx), w[m]) for m, idx in zip(self.modules.tolist(), self.members)]
+        return torch.cat(parts).index_select(0, self.inverse)
+
+
 def _gru_cell(x, h, wx, wh, bx, bh) -> torch.Tensor:
     """torch.nn.GRU's cell per group: x [g,w,in], h [g,w,H], wx [g,in,3H], bx [g,1,3H]."""
-    gx = torch.baddbmm(bx, x, wx)
-    gh = torch.baddbmm(bh, h, wh)
+    return _gru_update(torch.baddbmm(bx, x, wx), torch.baddbmm(bh, h, wh), h)
+
+
+def _gru_update(gx: torch.Tensor, gh: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+    """The new state from input gates gx and recurrent gates gh (r, z, n as in torch.nn.GRU)."""
     H = h.shape[-1]
     rz = torch.sigmoid(gx[..., : 2 * H] + gh[..., : 2 * H])
     r, z = rz[..., :H], rz[..., H:]

@@ -1,6 +1,6 @@
 """Closed-loop evaluation throughput: batched (many live episodes per forward) vs batch 1.
 
-    .venv/bin/python bench/evaluate.py [--checkpoint CKPT] [--data DIR] [--episodes 512] [--threads 1]
+    .venv/bin/python bench/evaluate.py [--checkpoint CKPT] [--data DIR] [--episodes 512] [--threads 2]
                                        [--max-steps 120]
 
 Defaults: the shipped model and 3000 freshly generated candidate examples (seed 0);
@@ -13,10 +13,9 @@ from __future__ import annotations
 
 import argparse
 import resource
-import subprocess
-import sys
-import tempfile
 import time
+
+from _data import dataset_or_generated
 
 
 def main() -> None:
@@ -27,7 +26,7 @@ def main() -> None:
     ap.add_argument("--episodes", type=int, default=512)
     ap.add_argument("--single-episodes", type=int, default=64, help="episodes for the batch-1 measurement")
     ap.add_argument("--batch-size", type=int, default=256)
-    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--threads", type=int, default=2, help="torch intra-op threads")
     ap.add_argument("--max-steps", type=int, default=120, help="decoding cap per episode (+1 for EOS)")
     args = ap.parse_args()
 
@@ -39,12 +38,7 @@ def main() -> None:
 
     torch.set_num_threads(args.threads)
     policy = Policy.from_checkpoint(args.checkpoint)
-    with tempfile.TemporaryDirectory() as tmp:
-        data = args.data
-        if data is None:
-            data = tmp
-            subprocess.run([sys.executable, "-m", "gscan_ros.cli", "generate", "--out", tmp, "--examples", "3000",
-                            "--seed", "0", "--workers", "1", "--quiet"], check=True)
+    with dataset_or_generated(args.data, examples=3000) as data:
         episodes = []
         for ep in iter_episodes(data, [args.split]):
             episodes.append(ep)

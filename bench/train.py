@@ -1,10 +1,12 @@
 """Training throughput: examples/s and peak RSS, mixed batches vs the original one-command batches.
 
-    .venv/bin/python bench/train.py [--data DIR] [--updates 6] [--threads 1]
+    .venv/bin/python bench/train.py [--data DIR] [--updates 10] [--warmup 2] [--threads 2]
 
 Without --data, a dataset of 6000 candidate examples is generated into a temp dir
 (seed 0; gSCAN-length episodes, ~14 actions on average). Each mode runs in its own
-child process, so each peak RSS is that mode's alone (states cache included).
+child process, so each peak RSS is that mode's alone (states cache included). The
+first `--warmup` updates (allocator and cache warm-up) are not timed; a timed update
+includes building the batch, forward, backward and the Adam step.
 """
 from __future__ import annotations
 
@@ -13,11 +15,12 @@ import json
 import resource
 import subprocess
 import sys
-import tempfile
 import time
 
+from _data import dataset_or_generated
 
-def measure(data: str, mode: str, updates: int, threads: int, batch_size: int) -> dict:
+
+def measure(data: str, mode: str, updates: int, warmup: int, threads: int, batch_size: int) -> dict:
     import numpy as np
     import torch
 
@@ -37,16 +40,17 @@ def measure(data: str, mode: str, updates: int, threads: int, batch_size: int) -
     model = new_model(TrainConfig(), parser, lexicon, store).train()
     opt = torch.optim.Adam(model.parameters(), lr=1e-3)
     order = batch_order(store, batch_size, mode, np.random.default_rng(0))
-    if mode == "per_command":  # the original's full 200-episode single-command chunks where possible
-        order = sorted(order, key=len, reverse=True)
+    order = sorted(order, key=len, reverse=True)  # full batches first (per_command: the original's 200-episode chunks)
+    if len(order) < warmup + updates:
+        raise SystemExit(f"{len(order)} batches in the data; --warmup + --updates needs {warmup + updates}")
     examples, steps, elapsed = 0, 0, 0.0
-    for i, ids in enumerate(order[: updates + 1]):
+    for i, ids in enumerate(order[: warmup + updates]):
         start = time.time()
-        out = model.teacher_forcing(store.batch(ids, model.table))
+        out = model.teacher_forcing(store.batch(ids, model.table, model.teacher_quantum))
         opt.zero_grad()
         out.loss.backward()
         opt.step()
-        if i:  # the first update warms up allocators
+        if i >= warmup:
             elapsed += time.time() - start
             examples += len(ids)
             steps += int(store.lengths[ids].sum())
@@ -60,24 +64,20 @@ def measure(data: str, mode: str, updates: int, threads: int, batch_size: int) -
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", help="dataset (default: generate 6000 candidates into a temp dir)")
-    ap.add_argument("--updates", type=int, default=6)
-    ap.add_argument("--threads", type=int, default=1, help="torch threads (2 on a loaded 2-core box is ~50x slower)")
+    ap.add_argument("--updates", type=int, default=10, help="timed updates per mode")
+    ap.add_argument("--warmup", type=int, default=2, help="untimed updates first")
+    ap.add_argument("--threads", type=int, default=2, help="torch intra-op threads")
     ap.add_argument("--batch-size", type=int, default=200)
     ap.add_argument("--mode", choices=("mixed", "per_command"), help="(internal) measure one mode in this process")
     args = ap.parse_args()
     if args.mode:
-        print(json.dumps(measure(args.data, args.mode, args.updates, args.threads, args.batch_size)))
+        print(json.dumps(measure(args.data, args.mode, args.updates, args.warmup, args.threads, args.batch_size)))
         return
-    with tempfile.TemporaryDirectory() as tmp:
-        data = args.data
-        if data is None:
-            data = tmp
-            subprocess.run([sys.executable, "-m", "gscan_ros.cli", "generate", "--out", tmp, "--examples", "6000",
-                            "--seed", "0", "--workers", "1", "--quiet"], check=True)
+    with dataset_or_generated(args.data, examples=6000) as data:
         results = {}
         for mode in ("mixed", "per_command"):
             cmd = [sys.executable, __file__, "--data", data, "--mode", mode, "--updates", str(args.updates),
-                   "--threads", str(args.threads), "--batch-size", str(args.batch_size)]
+                   "--warmup", str(args.warmup), "--threads", str(args.threads), "--batch-size", str(args.batch_size)]
             results[mode] = json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout)
     for mode, r in results.items():
         print(f"{mode:12s} {r['examples_per_s']:7.1f} examples/s  ({r['steps_per_s']:.0f} steps/s, mean batch "

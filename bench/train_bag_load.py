@@ -10,8 +10,9 @@ previous path (stream Episodes from the bag, replay every one through World).
 from __future__ import annotations
 
 import argparse
-import tempfile
 import time
+
+from _data import dataset_or_generated
 
 
 def main() -> None:
@@ -31,25 +32,21 @@ def main() -> None:
     from gscan_ros.training.trainer import load_split, load_train_store, make_lexicon
 
     torch.set_num_threads(1)
-    if args.data is None:
-        from gscan_ros.data.generate import GenerationConfig, generate_dataset
-
-        args.data = tempfile.mkdtemp(prefix="gscan_bagload_")
-        generate_dataset(args.data, GenerationConfig(seed=1, max_examples=10_000), workers=1, fmt="mcap")
     parser = get_parser("semantic", make_lexicon("wordnet"))
     cfg = TrainConfig(train_split=args.split)
-    bag = args.data if is_bag(args.data) else split_bags(args.data)[args.split]
-    cache_path(bag).unlink(missing_ok=True)
-    for label in ("first load (decode + write cache)", "second load (cache)", "third load (cache)"):
-        t0 = time.perf_counter()
-        store = load_train_store(args.data, cfg, parser)
-        print(f"{label:36s} {time.perf_counter() - t0:7.2f} s  {len(store)} episodes, "
-              f"{store.ep_ptr[-1]} states")
-    print(f"cache file: {cache_path(bag)} ({cache_path(bag).stat().st_size / 2**20:.1f} MiB)")
-    if args.old:
-        t0 = time.perf_counter()
-        store = EpisodeStore(load_split(args.data, args.split), parser)
-        print(f"{'old path (Episodes + World replay)':36s} {time.perf_counter() - t0:7.2f} s  {len(store)} episodes")
+    with dataset_or_generated(args.data, examples=10_000, seed=1, fmt="mcap") as data:
+        bag = data if is_bag(data) else split_bags(data)[args.split]
+        cache_path(bag).unlink(missing_ok=True)
+        for label in ("first load (decode + write cache)", "second load (cache)", "third load (cache)"):
+            t0 = time.perf_counter()
+            store = load_train_store(data, cfg, parser)
+            print(f"{label:36s} {time.perf_counter() - t0:7.2f} s  {len(store)} episodes, "
+                  f"{store.ep_ptr[-1]} states")
+        print(f"cache file: {cache_path(bag)} ({cache_path(bag).stat().st_size / 2**20:.1f} MiB)")
+        if args.old:
+            t0 = time.perf_counter()
+            store = EpisodeStore(load_split(data, args.split), parser)
+            print(f"{'old path (Episodes + World replay)':36s} {time.perf_counter() - t0:7.2f} s  {len(store)} episodes")
 
 
 if __name__ == "__main__":

@@ -4,7 +4,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from gscan_ros.model.compositional import Layout, ModelConfig, SlotGroups, _keep_mask, _ReluDrop, sparse_states
+from gscan_ros.model.compositional import (Layout, ModelConfig, SlotGroups, _keep_mask, _ReluDrop, _SegmentMatmul,
+                                           _shared_bits, sparse_states)
 from tests.model_support import GRAPHS, binary, random_states
 from tests.test_model_compositional import make_net
 
@@ -123,3 +124,83 @@ def test_training_encoder_is_dropout_of_the_dense_reference():
     kept = positive & ~dropped
     torch.testing.assert_close(feats[kept], dense[kept] / (1 - net.cfg.cnn_dropout), atol=1e-4, rtol=1e-4)
     assert (feats[~positive] == 0).all()
+
+
+def episode_like_states(rng: np.random.Generator, lengths: list[int]) -> tuple[np.ndarray, torch.Tensor]:
+    """States where most bits persist within an episode (objects) and a few change each
+    step (an 'agent' bit moving over the grid), plus each state's episode id."""
+    states, groups = [], []
+    for ep, n in enumerate(lengths):
+        base = random_states(rng, 1)[0]
+        for _ in range(n):
+            s = base.copy()
+            s.reshape(-1, 16)[rng.integers(36), 11 + rng.integers(5)] = 1  # agent + heading channels
+            states.append(s)
+            groups.append(ep)
+    return np.stack(states), torch.tensor(groups)
+
+
+@pytest.mark.parametrize("train", [False, True])
+def test_encoder_with_shared_episode_bits_matches_plain_bags(train):
+    net = make_net(ModelConfig(cnn_dropout=0.0))
+    net.encoder.train(train)
+    states, groups = episode_like_states(np.random.default_rng(7), [5, 1, 8, 3])
+    groups[[2, 9]] = -1  # states outside any group keep all their bits
+    idx, off = sparse_states(states)
+    plain = net.encoder(idx, off)
+    shared = net.encoder(idx, off, groups=groups)
+    torch.testing.assert_close(shared, plain, atol=1e-5, rtol=1e-5)
+    upstream = torch.randn_like(plain)
+    grads = [torch.autograd.grad((out * upstream).sum(), list(net.encoder.parameters())) for out in (plain, shared)]
+    for a, b in zip(*grads):
+        torch.testing.assert_close(a, b, atol=1e-4, rtol=1e-4)
+
+
+def test_shared_bits_are_the_bits_every_state_of_the_group_has():
+    states, groups = episode_like_states(np.random.default_rng(8), [4, 6])
+    idx, off = sparse_states(states)
+    width = 36 * 16 + 1
+    (shared, shared_off), own, own_off = _shared_bits(idx, off, groups, width)
+    flat = states.reshape(len(states), -1).astype(bool)
+    for g in range(2):
+        expected = set(np.flatnonzero(flat[(groups == g).numpy()].all(0))) | {width - 1}
+        hi = shared_off[g + 1] if g + 1 < len(shared_off) else len(shared)
+        assert set(shared[shared_off[g]:hi].tolist()) == expected
+    assert len(own) + len(shared) - 2 < len(idx)  # fewer additions than the plain bags
+    for n in range(len(states)):  # own bits + the group's bits = the state's bits
+        hi = own_off[n + 1] if n + 1 < len(own_off) else len(own)
+        g = int(groups[n])
+        shi = shared_off[g + 1] if g + 1 < len(shared_off) else len(shared)
+        mine = set(own[own_off[n]:hi].tolist()) | set(shared[shared_off[g]:shi].tolist()) - {width - 1}
+        assert mine == set(np.flatnonzero(flat[n]))
+
+
+def test_segment_matmul_gradients():
+    gen = torch.Generator().manual_seed(2)
+    x = torch.randn(7, 3, 5, dtype=torch.float64, generator=gen, requires_grad=True)
+    w = torch.randn(3, 5, 4, dtype=torch.float64, generator=gen, requires_grad=True)
+    sizes = [2, 0, 5]  # an empty segment too
+    out = _SegmentMatmul.apply(x, w, sizes)
+    ref = torch.cat([xs @ w[b] for b, xs in enumerate(x.split(sizes))])
+    torch.testing.assert_close(out, ref)
+    assert torch.autograd.gradcheck(lambda a, b: _SegmentMatmul.apply(a, b, sizes), (x, w))
+
+
+@pytest.mark.parametrize("quantum", [1, 4])
+def test_all_steps_at_once_matches_step_by_step(quantum):
+    from tests.test_model_compositional import synthetic_batch
+
+    graphs = GRAPHS + [binary()]
+    net = make_net(graphs=graphs)
+    batch, _, _ = synthetic_batch(net, graphs, [4, 7, 3, 6, 5, 2], seed=3, quantum=quantum)
+    fast, slow = net._teacher_forcing_parallel(batch), net._teacher_forcing_stepwise(batch)
+    torch.testing.assert_close(fast.logits, slow.logits, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(fast.overlap, slow.overlap, atol=1e-4, rtol=1e-4)
+    torch.testing.assert_close(fast.loss, slow.loss)
+    params = [p for p in net.parameters()]
+    g_fast = torch.autograd.grad(fast.loss, params, allow_unused=True)
+    g_slow = torch.autograd.grad(slow.loss, params, allow_unused=True)
+    for (name, _), a, b in zip(net.named_parameters(), g_fast, g_slow):
+        a = torch.zeros_like(_) if a is None else a
+        b = torch.zeros_like(_) if b is None else b
+        torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-4, msg=name)

@@ -261,26 +261,37 @@ class VisualEncoder(nn.Module):
             self._cache_key, self._cache = key, self._weight()
         return self._cache
 
-    def forward(self, indices: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
+    def forward(self, indices: torch.Tensor, offsets: torch.Tensor, groups: torch.Tensor | None = None) -> torch.Tensor:
         """Sparse path: set-bit indices of flattened [g, g, C] states (see `sparse_states`) -> [N, cells, F].
+
+        `groups` [N] (optional) names the episode of each state (-1: none). The bits that
+        every state of a group has (the objects that stay put, ~3/4 of them) are summed
+        once per group, and each state adds only its own changing bits (the agent, a
+        pushed object) plus that group sum: about 4x fewer additions in both directions.
 
         Dropout's 1/(1-p) scale is folded into the weights (ReLU commutes with a positive
         scale) and its mask is applied in the same op as the ReLU (`_ReluDrop`): the
         [N, cells, F] features are the largest tensors of a batch and memory-bound.
         """
         n = offsets.numel()
-        bias_row = self.cfg.cells * self.cfg.in_channels
-        starts = offsets + torch.arange(n)  # each bag gets the bias row first
-        bags = torch.full((indices.numel() + n,), bias_row, dtype=torch.long)
-        is_bit = torch.ones(bags.numel(), dtype=torch.bool)
-        is_bit[starts] = False
-        bags[is_bit] = indices
         keep = None
         if self.training and self.cfg.cnn_dropout > 0:
             keep, p = _keep_mask(n * self.cfg.cells * self.cfg.feature_dim, self.cfg.cnn_dropout)
             weight = self._weight() * (1.0 / (1.0 - p))
         else:
             weight = self._weight() if torch.is_grad_enabled() else self._inference_weight()
+        bias_row = self.cfg.cells * self.cfg.in_channels
+        if groups is None:
+            bags, starts = _with_extra_index(indices, offsets, torch.full((n,), bias_row))
+        else:
+            shared, own, own_offsets = _shared_bits(indices, offsets, groups, bias_row + 1)
+            shared_bits, shared_offsets = shared
+            group_sums = F.embedding_bag(shared_bits, weight, shared_offsets, mode="sum")
+            # A state's bag: its own bits + its group's sum (a row appended to the weight),
+            # or the bias row for a state without a group.
+            extra = torch.where(groups >= 0, weight.shape[0] + groups, bias_row)
+            bags, starts = _with_extra_index(own, own_offsets, extra)
+            weight = torch.cat([weight, group_sums])
         flat = F.embedding_bag(bags, weight, starts, mode="sum")
         if not torch.is_grad_enabled():
             flat = flat.relu_() if keep is None else flat.mul_(keep.view_as(flat)).relu_()
@@ -293,6 +304,45 @@ class VisualEncoder(nn.Module):
         x = states.float().permute(0, 3, 1, 2)
         feats = torch.cat([conv(x) for conv in self.convs], 1)
         return self.dropout(F.relu(feats)).flatten(2).transpose(1, 2)
+
+
+def _with_extra_index(indices: torch.Tensor, offsets: torch.Tensor, extra: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Bags (indices, offsets) with `extra[i]` put first in bag i."""
+    n = offsets.numel()
+    starts = offsets + torch.arange(n)
+    bags = torch.empty(indices.numel() + n, dtype=torch.long)
+    is_bit = torch.ones(bags.numel(), dtype=torch.bool)
+    is_bit[starts] = False
+    bags[is_bit] = indices
+    bags[starts] = extra
+    return bags, starts
+
+
+def _shared_bits(indices: torch.Tensor, offsets: torch.Tensor, groups: torch.Tensor, width: int):
+    """Split bags into the bits common to every bag of their group and the rest.
+
+    Returns ((shared bits, shared offsets) per group 0..G-1, plus the bias row `width-1`
+    in each), and the bags' remaining (indices, offsets). Bags of group -1 keep all bits.
+    """
+    n = offsets.numel()
+    counts = torch.diff(offsets, append=torch.tensor([indices.numel()]))
+    bag_group = torch.repeat_interleave(groups, counts)
+    num_groups = int(groups.max()) + 1 if n else 0
+    in_group = bag_group >= 0
+    key = bag_group.clamp(min=0) * width + indices
+    seen = torch.bincount(key[in_group], minlength=num_groups * width)
+    members = torch.bincount(groups[groups >= 0], minlength=num_groups)
+    common = (seen.view(num_groups, width) == members[:, None]) & (members[:, None] > 0)
+    common[:, width - 1] = True  # the bias row: once per group
+    is_shared = in_group & common.view(-1)[key]
+    own = indices[~is_shared]
+    own_counts = counts - torch.zeros(n, dtype=torch.long).index_add_(0, torch.repeat_interleave(torch.arange(n), counts), is_shared.long())
+    own_offsets = torch.zeros(n, dtype=torch.long)
+    own_offsets[1:] = own_counts.cumsum(0)[:-1]
+    group_ids, shared = common.nonzero(as_tuple=True)
+    shared_offsets = torch.zeros(num_groups, dtype=torch.long)
+    shared_offsets[1:] = common.sum(1).cumsum(0)[:-1]
+    return (shared, shared_offsets), own, own_offsets
 
 
 _DROP_LEVELS = 1 << 16
@@ -754,6 +804,13 @@ class CompositionalNetwork(nn.Module):
         return (prod * top["pair_mask"]).sum(-1)
 
     # -- teacher forcing
+    @property
+    def teacher_quantum(self) -> int:
+        """The `quantum` for `EpisodeStore.batch`: the step-by-step path re-slices per-row
+        tensors whenever the number of live rows changes (8: few changes, ~10% padded
+        steps); the all-steps-at-once path has no such cost, so no padding."""
+        return 8 if self.cfg.passes_state else 1
+
     def teacher_forcing(self, batch: "TeacherBatch") -> "TeacherOutput":
         """Loss over a batch whose rows are sorted by length, states packed time-major.
 
@@ -780,7 +837,7 @@ class CompositionalNetwork(nn.Module):
         cfg = self.cfg
         bound = self.bind(batch.layout)
         rm = _RowMajor(batch)
-        feats = self.encoder(*rm.bags)  # [N, cells, F], row-major
+        feats = self.encoder(*rm.bags, groups=rm.groups)  # [N, cells, F], row-major
         proj = self._projections(bound, feats, rm.sizes)
         rows = rm.rows
         n, cells = feats.shape[0], cfg.cells
@@ -884,6 +941,7 @@ class _RowMajor:
         self.to_time_major = torch.empty_like(self.order)
         self.to_time_major[self.order] = torch.arange(self.order.numel())
         self.rows = batch.rows.index_select(0, self.order)
+        self.groups = torch.where(batch.valid.index_select(0, self.order), self.rows, -1)  # episode of each real step
         self.sizes = torch.bincount(batch.rows, minlength=batch.layout.batch).tolist()
         self._batch = batch
 

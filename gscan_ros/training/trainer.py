@@ -217,7 +217,7 @@ def train(cfg: TrainConfig, data: str, out_dir: str | Path, resume: bool = False
     budget_s = cfg.max_minutes * 60.0
     while step < cfg.max_updates:
         cursor, ids = next(batches)
-        out = model.teacher_forcing(store.batch(ids, model.table) if cfg.model_kind == "compositional"
+        out = model.teacher_forcing(store.batch(ids, model.table, model.teacher_quantum) if cfg.model_kind == "compositional"
                                     else model.make_batch(store, ids))
         optimizer.zero_grad(set_to_none=True)
         out.loss.backward()

@@ -27,7 +27,7 @@ def measure(data: str, mode: str, updates: int, warmup: int, threads: int, batch
     from gscan_ros.language.registry import get_parser
     from gscan_ros.training.batches import EpisodeStore, batch_order
     from gscan_ros.training.config import TrainConfig
-    from gscan_ros.training.trainer import keep_freed_memory, load_split, make_lexicon, new_model
+    from gscan_ros.training.trainer import iter_split, keep_freed_memory, make_lexicon, new_model
 
     torch.set_num_threads(threads)
     keep_freed_memory()
@@ -35,7 +35,7 @@ def measure(data: str, mode: str, updates: int, warmup: int, threads: int, batch
     lexicon = make_lexicon("wordnet")
     parser = get_parser("semantic", lexicon)
     t0 = time.time()
-    store = EpisodeStore(load_split(data, "train"), parser)
+    store = EpisodeStore(iter_split(data, "train"), parser)
     cache_s = time.time() - t0
     model = new_model(TrainConfig(), parser, lexicon, store).train()
     opt = torch.optim.Adam(model.parameters(), lr=1e-3)

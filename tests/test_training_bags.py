@@ -49,6 +49,7 @@ def test_bag_store_equals_the_dataset_store(data, parser):
     episodes = load_split(str(txt), "train")
     assert len(from_bag) == len(episodes) > 100
     assert_same_store(from_bag, EpisodeStore(episodes, parser))
+    assert_same_store(from_bag, EpisodeStore(iter(episodes), parser, chunk=7))  # streamed, chunk boundaries
     ids = [3, 0, 7]
     assert np.array_equal(from_bag.initial_states(ids), np.stack([episodes[i].states()[0] for i in ids]))
 

@@ -10,7 +10,7 @@ visual encoder.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Iterable, Iterator, Sequence
+from typing import TYPE_CHECKING, Iterable, Iterator, Sequence, Sized
 
 import numpy as np
 import torch
@@ -34,12 +34,25 @@ class EpisodeStore:
     decode-once cache (`from_cache`: recorded states, no Situation parsed, no replay).
     """
 
-    def __init__(self, episodes: Sequence[Episode], parser, progress: bool = False, chunk: int = 4096):
-        episodes = list(episodes)
-        chunks = (np.concatenate([ep.states() for ep in episodes[start : start + chunk]])
-                  for start in range(0, len(episodes), chunk))
-        self._fill([ep.command for ep in episodes], [ep.actions for ep in episodes], chunks, parser,
-                   progress=progress, total=-(-len(episodes) // chunk))
+    def __init__(self, episodes: Iterable[Episode], parser, progress: bool = False, chunk: int = 4096):
+        """Streams `episodes` (any iterable) in chunks: only a chunk of Episodes is alive at once."""
+        commands: list[str] = []
+        actions: list[Sequence[Action]] = []
+
+        def state_chunks() -> Iterator[np.ndarray]:
+            batch: list[Episode] = []
+            for ep in episodes:
+                commands.append(ep.command)
+                actions.append(ep.actions)
+                batch.append(ep)
+                if len(batch) == chunk:
+                    yield np.concatenate([e.states() for e in batch])
+                    batch = []
+            if batch:
+                yield np.concatenate([e.states() for e in batch])
+
+        total = -(-len(episodes) // chunk) if isinstance(episodes, Sized) else None
+        self._fill(commands, actions, state_chunks(), parser, progress=progress, total=total)
 
     @classmethod
     def from_cache(cls, cache: "EpisodeCache", parser, progress: bool = False, chunk: int = 4096) -> "EpisodeStore":
@@ -55,14 +68,8 @@ class EpisodeStore:
               parser, progress: bool, total: int) -> None:
         """Parse each distinct command once; keep actions (+EOS) and the set bits of each state.
 
-        `state_chunks` yields the episodes' T+1 states, concatenated in episode order."""
-        self.commands = list(commands)
-        graphs: dict[str, CommandGraph] = {c: parser.parse(c) for c in dict.fromkeys(self.commands)}
-        self.graphs = [graphs[c] for c in self.commands]
-        self.lengths = np.array([len(a) + 1 for a in actions], dtype=np.int64)  # + EOS
-        self.ep_ptr = np.zeros(len(self.commands) + 1, dtype=np.int64)
-        self.ep_ptr[1:] = np.cumsum(self.lengths)  # states per episode = T + 1 = length
-        self.actions = np.array([int(a) for acts in actions for a in (*acts, Action.EOS)], dtype=np.int64)
+        `state_chunks` yields the episodes' T+1 states, concatenated in episode order; it
+        is consumed first (it may be what fills `commands` and `actions`)."""
         bits, counts = [], []
         for states in tqdm(state_chunks, total=total, desc="caching states", unit="chunk", disable=not progress):
             flat = states.reshape(len(states), -1)
@@ -71,6 +78,13 @@ class EpisodeStore:
             rows, cols = np.nonzero(flat)
             bits.append(cols.astype(np.int16))
             counts.append(np.bincount(rows, minlength=len(flat)))
+        self.commands = list(commands)
+        graphs: dict[str, CommandGraph] = {c: parser.parse(c) for c in dict.fromkeys(self.commands)}
+        self.graphs = [graphs[c] for c in self.commands]
+        self.lengths = np.array([len(a) + 1 for a in actions], dtype=np.int64)  # + EOS
+        self.ep_ptr = np.zeros(len(self.commands) + 1, dtype=np.int64)
+        self.ep_ptr[1:] = np.cumsum(self.lengths)  # states per episode = T + 1 = length
+        self.actions = np.array([int(a) for acts in actions for a in (*acts, Action.EOS)], dtype=np.int64)
         self.bits = np.concatenate(bits) if bits else np.zeros(0, np.int16)
         counts_all = np.concatenate(counts) if counts else np.zeros(0, np.int64)
         if len(counts_all) != self.ep_ptr[-1]:

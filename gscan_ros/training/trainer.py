@@ -8,6 +8,7 @@ state: the file to ship or evaluate).
 from __future__ import annotations
 
 import ctypes
+import itertools
 import ctypes.util
 import json
 import logging
@@ -15,6 +16,7 @@ import random
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 import torch
@@ -98,15 +100,16 @@ def new_model(cfg: TrainConfig, parser, lexicon: Lexicon, store: EpisodeStore):
     return build_model("seq2seq", cfg.model_config().to_dict(), {"tokens": command_vocabulary()})
 
 
-def load_split(data: str, split: str, limit: int = 0):
+def iter_split(data: str, split: str, limit: int = 0) -> Iterator:
+    """Episodes of `split` streamed from `data` (the first `limit`; 0 = all)."""
     from gscan_ros.data.io import iter_episodes
 
-    out = []
-    for ep in iter_episodes(data, [split]):
-        out.append(ep)
-        if limit and len(out) >= limit:
-            break
-    return out
+    episodes = iter_episodes(data, [split])
+    return itertools.islice(episodes, limit) if limit else episodes
+
+
+def load_split(data: str, split: str, limit: int = 0) -> list:
+    return list(iter_split(data, split, limit))
 
 
 def split_cache(data: str, split: str):
@@ -128,7 +131,7 @@ def load_train_store(data: str, cfg: TrainConfig, parser, progress: bool = False
     Episodes replayed through World."""
     cache = split_cache(data, cfg.train_split)
     if cache is None:
-        return EpisodeStore(load_split(data, cfg.train_split, cfg.max_train_examples), parser, progress=progress)
+        return EpisodeStore(iter_split(data, cfg.train_split, cfg.max_train_examples), parser, progress=progress)
     if cfg.max_train_examples:
         cache = cache.subset(range(min(cfg.max_train_examples, len(cache))))
     return EpisodeStore.from_cache(cache, parser, progress=progress)

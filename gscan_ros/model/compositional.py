@@ -45,8 +45,23 @@ MESSAGES = ("attention", "state", "attention+state")
 
 
 # --------------------------------------------------------------------------- config
+class DictConfig:
+    """to_dict/from_dict of the frozen config dataclasses that checkpoints store (tuples
+    as lists; unknown keys are a CheckpointError)."""
+
+    def to_dict(self) -> dict:
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, d: dict):
+        unknown = sorted(set(d) - {f.name for f in fields(cls)})
+        if unknown:
+            raise CheckpointError(f"unknown {cls.__name__} keys {unknown}")
+        return cls(**d)
+
+
 @dataclass(frozen=True)
-class ModelConfig:
+class ModelConfig(DictConfig):
     """Hyper-parameters of the compositional network (defaults: CG `config_train.yaml`)."""
 
     grid_size: int = GRID_SIZE
@@ -95,19 +110,6 @@ class ModelConfig:
     @property
     def passes_state(self) -> bool:
         return self.message != "attention"
-
-    def to_dict(self) -> dict:
-        d = asdict(self)
-        d["cnn_kernels"] = list(self.cnn_kernels)
-        return d
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "ModelConfig":
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise CheckpointError(f"unknown model config keys {unknown}")
-        return cls(**d)
 
 
 # --------------------------------------------------------------------- module table

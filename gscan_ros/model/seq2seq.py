@@ -8,15 +8,15 @@ gold previous actions; closed-loop decoding feeds its own.
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from gscan_ros.errors import CheckpointError, CommandError
-from gscan_ros.model.compositional import ModelConfig, TeacherOutput, VisualEncoder, sparse_states
+from gscan_ros.errors import CommandError
+from gscan_ros.model.compositional import DictConfig, ModelConfig, TeacherOutput, VisualEncoder, sparse_states
 from gscan_ros.world.types import Action
 
 
@@ -28,7 +28,7 @@ def command_vocabulary() -> list[str]:
 
 
 @dataclass(frozen=True)
-class Seq2SeqConfig:
+class Seq2SeqConfig(DictConfig):
     """Hyper-parameters of the baseline (defaults: MM `all_experiments.sh`)."""
 
     embedding_dim: int = 25
@@ -46,17 +46,8 @@ class Seq2SeqConfig:
     num_actions: int = len(Action)
     """Output classes: six actions + EOS (`Action` values)."""
 
-    def to_dict(self) -> dict:
-        d = asdict(self)
-        d["cnn_kernels"] = list(self.cnn_kernels)
-        return d
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "Seq2SeqConfig":
-        unknown = sorted(set(d) - {f.name for f in fields(cls)})
-        if unknown:
-            raise CheckpointError(f"unknown seq2seq config keys {unknown}")
-        return cls(**{**d, "cnn_kernels": tuple(d.get("cnn_kernels", (1, 5, 7)))})
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "cnn_kernels", tuple(int(k) for k in self.cnn_kernels))
 
 
 class _Additive(nn.Module):

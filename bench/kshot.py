@@ -1,7 +1,7 @@
 """Split G, the adverb k-shot protocol (GSCAN_SPEC §7.3): one model per k, exact match on adverb_1.
 
     .venv/bin/python bench/kshot.py [--ks 1 5 10 50] [--updates 5000] [--parallel 2]
-                                    [--eval-examples 20000] [--examples N | full]
+                                    [--eval-examples 10000] [--examples N | full]
 
 For each k, with the same seed, so the datasets differ only in which k "cautiously"
 examples sit in train (quirk Q10: k is the total count in train):
@@ -39,7 +39,7 @@ def main() -> None:
     ap.add_argument("--examples", default="full", help="candidates per dataset, or 'full' (default)")
     ap.add_argument("--updates", type=int, default=5000, help="training updates per model (batch 200)")
     ap.add_argument("--parallel", type=int, default=2, help="training runs at once (1 torch thread each)")
-    ap.add_argument("--eval-examples", type=int, default=20000, help="seeded subset per split (0 = all)")
+    ap.add_argument("--eval-examples", type=int, default=10000, help="seeded subset per split (0 = all)")
     ap.add_argument("--data-pattern", default="data_gen/full_k{k}")
     ap.add_argument("--run-pattern", default="runs/full_k{k}")
     args = ap.parse_args()

@@ -27,9 +27,14 @@ def test_train_resume_evaluate(dataset, tmp_path, kind):
     run = tmp_path / "run"
     assert run_train(dataset, run, "--set", "max_updates=2", "--set", f"model_kind={kind}") == 0
     assert read_checkpoint(run / "last.pt")["step"] == 2
-    assert run_train(dataset, run, "--set", "max_updates=3", "--set", f"model_kind={kind}", "--resume") == 0
+    assert run_train(dataset, run, "--set", "max_updates=3", "--set", f"model_kind={kind}", "--resume",
+                     "--set", "snapshot_every=3") == 0
     ckpt = read_checkpoint(run / "last.pt")
     assert ckpt["step"] == 3 and ckpt["kind"] == kind and ckpt["parser"] == "semantic"
+    snapshot = read_checkpoint(run / "step_3.pt")  # the weights at update 3, without training state
+    assert snapshot["step"] == 3 and "optimizer" not in snapshot
+    assert all(torch.equal(snapshot["state_dict"][k], v) for k, v in ckpt["state_dict"].items())
+    assert not (run / "step_2.pt").exists()
     events = [json.loads(line)["event"] for line in (run / "metrics.jsonl").read_text().splitlines()]
     assert events.count("start") == 2 and "validation" in events
     assert (run / "learning_curve.png").stat().st_size > 0

@@ -58,6 +58,9 @@ class TrainConfig:
     """Episodes decoded together in closed-loop validation."""
     checkpoint_every: int = 500
     """Updates between checkpoints (last.pt; best.pt on better dev exact match)."""
+    snapshot_every: int = 0
+    """Also keep the weights every N updates as step_<N>.pt (e.g. to evaluate a long run
+    at the budget of shorter ones); 0 = never."""
     log_every: int = 50
     """Updates between metrics log lines."""
     threads: int = 0
@@ -75,6 +78,8 @@ class TrainConfig:
         for key in ("batch_size", "max_updates", "validate_every", "checkpoint_every", "log_every", "eval_batch_size"):
             if int(getattr(self, key)) <= 0:
                 raise ConfigError(f"{key} must be positive, got {getattr(self, key)!r}")
+        if int(self.snapshot_every) < 0:
+            raise ConfigError(f"snapshot_every must be >= 0, got {self.snapshot_every!r}")
         if not isinstance(self.model, dict):
             raise ConfigError(f"model must be a mapping of model settings, got {self.model!r}")
         self.model_config()  # validates model keys

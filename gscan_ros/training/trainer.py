@@ -50,6 +50,9 @@ class RunFiles:
     best = property(lambda self: self.root / "best.pt")
     model = property(lambda self: self.root / "model.pt")
 
+    def snapshot(self, step: int) -> Path:
+        return self.root / f"step_{step}.pt"
+
 
 def seed_everything(seed: int) -> dict:
     random.seed(seed)
@@ -243,6 +246,8 @@ def train(cfg: TrainConfig, data: str, out_dir: str | Path, resume: bool = False
             last_metrics = validate()
         if step % cfg.checkpoint_every == 0 or step == cfg.max_updates or out_of_time:
             checkpoint(files.last, last_metrics, training_state=True)
+        if cfg.snapshot_every and step % cfg.snapshot_every == 0:
+            checkpoint(files.snapshot(step), last_metrics, training_state=False)
         if out_of_time:
             break
     bar.close()

@@ -834,8 +834,9 @@ class CompositionalNetwork(nn.Module):
         return TeacherOutput(per_example.mean(), logits, nll, overlap)
 
     def _teacher_forcing_parallel(self, batch: "TeacherBatch") -> "TeacherOutput":
-        """Every packed step at once: a handful of large ops per level, then the root GRU
-        as one packed-sequence `aten::gru` call per root module."""
+        """Every packed step at once: the features and projections row-major (episodes'
+        steps consecutive), a handful of large ops per graph level, then the root GRU
+        over time (`_root_gru_logits`) and the loss in time-major order."""
         cfg = self.cfg
         bound = self.bind(batch.layout)
         rm = _RowMajor(batch)

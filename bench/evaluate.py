@@ -25,7 +25,7 @@ def main() -> None:
     ap.add_argument("--split", default="test")
     ap.add_argument("--episodes", type=int, default=512)
     ap.add_argument("--single-episodes", type=int, default=64, help="episodes for the batch-1 measurement")
-    ap.add_argument("--batch-size", type=int, default=256)
+    ap.add_argument("--batch-size", type=int, default=1024)
     ap.add_argument("--threads", type=int, default=2, help="torch intra-op threads")
     ap.add_argument("--max-steps", type=int, default=120, help="decoding cap per episode (+1 for EOS)")
     args = ap.parse_args()

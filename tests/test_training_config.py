@@ -1,4 +1,6 @@
 """TrainConfig: YAML + --set overrides, unknown keys rejected with the key named."""
+from pathlib import Path
+
 import pytest
 
 from gscan_ros.training.config import ConfigError, TrainConfig
@@ -24,3 +26,17 @@ def test_yaml_and_overrides(tmp_path):
 def test_bad_settings_are_named(overrides, message):
     with pytest.raises(ConfigError, match=message):
         TrainConfig.load(None, overrides)
+
+
+CONFIGS = sorted((Path(__file__).resolve().parents[1] / "configs").glob("*.yaml"))
+
+
+@pytest.mark.parametrize("path", CONFIGS, ids=[p.name for p in CONFIGS])
+def test_shipped_configs_load(path):
+    cfg = TrainConfig.load(path, [])
+    assert cfg.model_config() is not None
+
+
+def test_length_config_widens_the_cnn_as_the_original():
+    cfg = TrainConfig.load(Path(__file__).resolve().parents[1] / "configs" / "length.yaml", [])
+    assert cfg.model_config().cnn_kernels == (1, 5, 13)

@@ -22,7 +22,7 @@ def register(subparsers) -> None:
     p.add_argument("--splits", nargs="+", metavar="SPLIT", help="splits to evaluate (default: every test split present)")
     p.add_argument("--max-examples", type=int, default=0, metavar="N", help="seeded subset of N episodes per split (0 = all)")
     p.add_argument("--out", default="runs/eval", metavar="DIR", help="output directory (default: runs/eval)")
-    p.add_argument("--batch-size", type=int, default=256, help="episodes decoded together (default: 256)")
+    p.add_argument("--batch-size", type=int, default=1024, help="episodes decoded together (default: 1024)")
     p.add_argument("--no-predictions", action="store_true", help="skip predictions.json")
     p.add_argument("--attention", action="store_true",
                    help="store every word's attention map per step in predictions.json (large: ~85 kB per episode)")

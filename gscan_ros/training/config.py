@@ -54,7 +54,7 @@ class TrainConfig:
     max_dev_examples: int = 500
     """Cap on dev episodes per validation (quirk Q1: the original ignored its cap of 2000);
     a fixed, seeded subset. 0 = the whole dev split."""
-    eval_batch_size: int = 256
+    eval_batch_size: int = 1024
     """Episodes decoded together in closed-loop validation."""
     checkpoint_every: int = 500
     """Updates between checkpoints (last.pt; best.pt on better dev exact match)."""

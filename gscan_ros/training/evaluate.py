@@ -96,7 +96,7 @@ def _pct(flags) -> float:
 
 
 @torch.no_grad()
-def evaluate_episodes(model_or_policy, episodes: Sequence[Episode], batch_size: int = 256,
+def evaluate_episodes(model_or_policy, episodes: Sequence[Episode], batch_size: int = 1024,
                       max_steps: int = MAX_STEPS, record_attention: bool = False, parser: str = "semantic",
                       progress: bool = False) -> EvalResult:
     """Closed-loop decode `episodes`, `batch_size` at a time. A bare model is wrapped in a

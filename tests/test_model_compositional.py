@@ -76,14 +76,17 @@ def test_parameter_count_matches_the_original():
     assert sum(p.numel() for p in net.encoder.parameters()) == 60_150
 
 
-@pytest.mark.parametrize("message", ["attention", "state", "attention+state"])
-def test_gradients_reach_every_module_used(message):
+@pytest.mark.parametrize("message, attention_state", [("attention", "broadcast"), ("state", "broadcast"),
+                                                      ("attention+state", "broadcast"), ("attention", "add")])
+def test_gradients_reach_every_module_used(message, attention_state):
     graphs = [chain(["walk", "circle"]), chain(["push", "big", "square"]), binary()]
-    net = make_net(ModelConfig(message=message), graphs=graphs).train()
+    net = make_net(ModelConfig(message=message, attention_state=attention_state), graphs=graphs).train()
     batch, _, _ = synthetic_batch(net, graphs, [3, 5, 4])
     net.teacher_forcing(batch).loss.backward()
     bank, used = net.bank, {net.table.index[k] for g in graphs for k in g.modules()}
-    if message == "attention":
+    if attention_state == "add":  # a module's state shapes its own map: every GRU matters
+        assert (bank.att_state_w.grad.flatten(1).abs().sum(1) > 0).sum() >= len(used)
+    if message == "attention" and attention_state == "broadcast":
         # Only maps leave a module, and its own state cancels in its attention's softmax
         # (GSCAN_SPEC §8.4 broadcasts it over cells): only root GRUs can get gradient.
         # (Before the fast path skipped the inert GRUs, the others got ~1e-8 rounding noise.)
@@ -130,9 +133,10 @@ def test_antonym_heads_differ_and_overlap_is_penalised():
     assert spec.num_heads == 2 and spec.antonyms == ((0, 1),)
 
 
-def test_mixed_batch_equals_per_command_batches():
+@pytest.mark.parametrize("cfg", [ModelConfig(), ModelConfig(attention_state="add")], ids=["broadcast", "add"])
+def test_mixed_batch_equals_per_command_batches(cfg):
     graphs = GRAPHS + [binary()]
-    net = make_net(graphs=graphs)
+    net = make_net(cfg, graphs=graphs)
     lengths = [4, 7, 3, 6, 5, 2]
     mixed, states, order = synthetic_batch(net, graphs, lengths, seed=5, quantum=4)
     out = net.teacher_forcing(mixed)
@@ -179,3 +183,24 @@ def test_layouts_of_a_new_table_never_reuse_another_tables_levels():
         then = table(graphs_then)
         layout = Layout(graphs_then, then)
         assert int(layout.module.max()) < len(then.specs)
+
+
+@pytest.mark.parametrize("attention_state", ["broadcast", "add"])
+def test_a_modules_state_moves_its_map_only_when_added(attention_state):
+    net = make_net(ModelConfig(attention_state=attention_state))
+    layout = Layout(GRAPHS, net.table)
+    bound = net.bind(layout)
+    feats = net.encoder(*sparse_states(random_states(np.random.default_rng(4), len(GRAPHS))))
+    zero = net.step(bound, net.initial_hidden(len(GRAPHS), layout.num_slots), feats).maps
+    noise = torch.randn(len(GRAPHS), layout.num_slots, 40, generator=torch.Generator().manual_seed(1))
+    moved = net.step(bound, noise, feats).maps
+    assert torch.allclose(zero, moved, atol=1e-6) == (attention_state == "broadcast")
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"attention_state": "multiply"}, "attention_state"),
+    ({"attention_state": "add", "message": "state"}, "needs attention maps"),
+])
+def test_bad_attention_state_is_named(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        ModelConfig(**kwargs)

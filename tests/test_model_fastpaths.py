@@ -87,6 +87,28 @@ def test_leaf_maps_match_the_full_formula_with_the_state_term():
     assert leaves >= rows
 
 
+def test_leaf_maps_with_the_state_added_before_the_relu():
+    """attention_state='add': ReLU(feats W + b + h W_h + b_h) per cell, then the output
+    layer (the concatenated state column still cancels)."""
+    net = make_net(ModelConfig(attention_state="add"))
+    rows, layout = len(GRAPHS), Layout(GRAPHS, net.table)
+    feats = net.encoder(*sparse_states(random_states(np.random.default_rng(6), rows)))
+    hidden = torch.randn(rows, layout.num_slots, 40, generator=torch.Generator().manual_seed(3))
+    maps = net.step(net.bind(layout), hidden, feats).maps
+    bank = net.bank
+    leaves = 0
+    for b in range(rows):
+        for j in range(layout.num_slots):
+            if not layout.occupied[b, j] or layout.child[b, j].any():
+                continue
+            u, h = layout.unit[b, j], hidden[b, layout.src[b, j]]
+            state = h @ bank.att_state_w[u] + bank.att_state_b[u]
+            logits = F.relu(feats[b] @ bank.att_feat_w[u, 0] + bank.att_feat_b[u, 0] + state) @ bank.att_out_w[u, 0]
+            torch.testing.assert_close(maps[b, j], torch.softmax(logits, 0), atol=1e-6, rtol=1e-5)
+            leaves += 1
+    assert leaves >= rows
+
+
 def test_relu_drop_matches_relu_times_mask_with_gradients():
     gen = torch.Generator().manual_seed(1)
     x = torch.randn(3, 36, 150, generator=gen)

@@ -42,6 +42,7 @@ from gscan_ros.language.graph import CommandGraph
 from gscan_ros.world.types import GRID_SIZE, NUM_CHANNELS, Action
 
 MESSAGES = ("attention", "state", "attention+state")
+ATTENTION_STATES = ("broadcast", "add")
 
 
 # --------------------------------------------------------------------------- config
@@ -85,12 +86,23 @@ class ModelConfig(DictConfig):
     attention at all: CG `no_attention`), or 'attention+state' (CG `pass_state`)."""
     antonym_weight: float = 1.0
     """Weight of the antonym overlap loss (CG `compare_weight`); 0 disables the term."""
+    attention_state: str = "broadcast"
+    """How a module's previous state enters its attention MLP. 'broadcast' (GSCAN_SPEC
+    §8.4): projected, concatenated after the arguments' projections and broadcast over the
+    cells, where it cancels in the softmax. 'add': added to every argument's projection
+    before the ReLU, so the module's own state shapes its map (one reading of the paper's
+    "mapped to the same dimension before being combined"). Same parameters either way;
+    'add' runs every module's GRU and trains step by step."""
     num_actions: int = len(Action)
     """Output classes: the six gSCAN actions plus EOS, ids = `Action` values."""
 
     def __post_init__(self) -> None:
         if self.message not in MESSAGES:
             raise ValueError(f"message must be one of {MESSAGES}, got {self.message!r}")
+        if self.attention_state not in ATTENTION_STATES:
+            raise ValueError(f"attention_state must be one of {ATTENTION_STATES}, got {self.attention_state!r}")
+        if self.attention_state == "add" and not self.uses_attention:
+            raise ValueError("attention_state='add' needs attention maps; message='state' has none")
         object.__setattr__(self, "cnn_kernels", tuple(int(k) for k in self.cnn_kernels))
         if any(k % 2 == 0 for k in self.cnn_kernels):
             raise ValueError(f"cnn_kernels must be odd for 'same' padding, got {self.cnn_kernels}")
@@ -110,6 +122,16 @@ class ModelConfig(DictConfig):
     @property
     def passes_state(self) -> bool:
         return self.message != "attention"
+
+    @property
+    def state_in_attention(self) -> bool:
+        """A module's state changes its map (so every module's GRU matters)."""
+        return self.attention_state == "add"
+
+    @property
+    def runs_every_gru(self) -> bool:
+        """Every slot's GRU runs, block by block; otherwise only the root's (see `step`)."""
+        return self.passes_state or self.state_in_attention
 
 
 # --------------------------------------------------------------------- module table
@@ -575,7 +597,7 @@ class Bound:
     def __init__(self, blocks: list[dict[str, torch.Tensor]], top: dict[str, torch.Tensor], num_slots: int,
                  spans: list[tuple[int, int]], bank: "WordModuleBank"):
         self.blocks, self.top, self.num_slots, self.spans, self.bank = blocks, top, num_slots, spans, bank
-        if bank.cfg.passes_state:  # GRUs run block by block (see CompositionalNetwork.step)
+        if bank.cfg.runs_every_gru:  # GRUs run block by block (see CompositionalNetwork.step)
             self.gru = [_GruGroups(blk["gru_module"], bank) for blk in blocks]
         else:  # only the root's GRU matters (see CompositionalNetwork.step)
             self.gru_root = _GruGroups(top["root_module"][:, None], bank)
@@ -700,9 +722,11 @@ class CompositionalNetwork(nn.Module):
                 S = bank.max_slots
                 score_w = bank.att_out_w[u][:, :, :S] * layout.slot_mask[:, lo:hi, :, None]
                 blk["score_w"] = score_w.reshape(B, k, S * A)
+            if cfg.state_in_attention:
+                blk["att_state_w"], blk["att_state_b"] = bank.att_state_w[u], bank.att_state_b[u]
             if cfg.passes_state:
                 blk["pass_w"], blk["pass_b"] = bank.state_w[m], bank.state_b[m]
-            if cfg.passes_state:
+            if cfg.runs_every_gru:
                 # Real slots run their module's GRU; padding and antonym shadows (src != own slot) none.
                 real = layout.occupied[:, lo:hi] & (layout.src[:, lo:hi] == torch.arange(lo, hi))
                 blk["gru_module"] = torch.where(real, m, -1)
@@ -741,27 +765,33 @@ class CompositionalNetwork(nn.Module):
             child = blk["child"]
             k, S = child.shape[1], child.shape[2]
             parts = []
+            h_prev = None
+            if cfg.runs_every_gru:  # antonym shadows read their owner's state (src)
+                h_prev = hidden.gather(1, blk["src"][..., None].expand(-1, -1, L * H))  # [n, k, LH]
             if cfg.uses_attention:
                 if proj is None:
                     p = torch.bmm(feats, bound.feat_w(b_i)).view(n, cells, k, S, -1)
                 else:
                     p = proj[:, :, lo:hi]
-                maps_done.append(self._attend(blk, _child_maps(maps_done, child), p))
-                if not cfg.passes_state:
+                state = None
+                if cfg.state_in_attention:
+                    state = torch.einsum("nki,nkia->nka", h_prev, blk["att_state_w"]) + blk["att_state_b"]
+                maps_done.append(self._attend(blk, _child_maps(maps_done, child), p, state))
+                if not cfg.runs_every_gru:
                     continue  # the root's GRU runs after the loop
                 parts.append(torch.bmm(maps_done[-1], feats))  # attention-weighted feature sum
             else:
                 parts.append(feats.sum(1, keepdim=True).expand(-1, k, -1))
-            # Parents read their children's new states: this block's GRUs run now.
-            hpool = torch.cat(hid_done, 1)
-            ch = hpool.gather(1, child.reshape(n, k * S, 1).expand(-1, -1, L * H)).view(n, k, S * L * H)
-            parts.append(torch.einsum("nki,nkio->nko", ch, blk["pass_w"]) + blk["pass_b"])
-            h_prev = hidden.gather(1, blk["src"][..., None].expand(-1, -1, L * H))  # [n, k, LH]
+            if cfg.passes_state:
+                # Parents read their children's new states: this block's GRUs run now.
+                hpool = torch.cat(hid_done, 1)
+                ch = hpool.gather(1, child.reshape(n, k * S, 1).expand(-1, -1, L * H)).view(n, k, S * L * H)
+                parts.append(torch.einsum("nki,nkio->nko", ch, blk["pass_w"]) + blk["pass_b"])
             hid_done.append(bound.gru[b_i].run(torch.cat(parts, -1), h_prev, L, H))
         maps = torch.cat(maps_done[1:], 1) if cfg.uses_attention else None
         top = bound.top
         root = top["root"][:, None, None]
-        if cfg.passes_state:
+        if cfg.runs_every_gru:
             new_hidden = torch.cat(hid_done[1:], 1)
             root_h = new_hidden.gather(1, root.expand(-1, 1, L * H))
         else:
@@ -777,7 +807,7 @@ class CompositionalNetwork(nn.Module):
         return StepResult(logits, new_hidden, maps, overlap)
 
     @staticmethod
-    def _attend(blk, cmaps, proj) -> torch.Tensor:
+    def _attend(blk, cmaps, proj, state: torch.Tensor | None = None) -> torch.Tensor:
         """softmax_cells( W_out . ReLU([ (feats*map_s) W_s + b_s ]_s ++ [h W_h + b_h]) + b ) -> [n, k, cells].
 
         (feats * map) W == map * (feats W): `proj` [n, cells, k, S, A] holds every slot's
@@ -785,10 +815,14 @@ class CompositionalNetwork(nn.Module):
         The hidden-state input (`att_state_*`, its `att_out_w` column and `att_out_b`) is
         broadcast over the cells, so it adds the same constant to every cell's logit and
         cancels in the softmax: it is not computed (GSCAN_SPEC §8.4's maps are exactly
-        the same).
+        the same). With attention_state='add', `state` [n, k, A] (h W_h + b_h) is added to
+        every argument's projection before the ReLU instead.
         """
         n, k, S, cells = cmaps.shape
-        hidden = torch.addcmul(blk["feat_b"][:, None], proj, cmaps.permute(0, 3, 1, 2)[..., None]).relu_()
+        hidden = torch.addcmul(blk["feat_b"][:, None], proj, cmaps.permute(0, 3, 1, 2)[..., None])
+        if state is not None:
+            hidden = hidden + state[:, None, :, None, :]
+        hidden = hidden.relu_()
         score = (hidden.view(n, cells, k, -1) * blk["score_w"][:, None]).sum(-1)  # [n, cells, k]
         return torch.softmax(score, 1).transpose(1, 2)
 
@@ -811,17 +845,18 @@ class CompositionalNetwork(nn.Module):
         """The `quantum` for `EpisodeStore.batch`: the step-by-step path re-slices per-row
         tensors whenever the number of live rows changes (8: few changes, ~10% padded
         steps); the all-steps-at-once path has no such cost, so no padding."""
-        return 8 if self.cfg.passes_state else 1
+        return 8 if self.cfg.runs_every_gru else 1
 
     def teacher_forcing(self, batch: "TeacherBatch") -> "TeacherOutput":
         """Loss over a batch whose rows are sorted by length, states packed time-major.
 
         With message='attention' the maps depend on the world state only (see `step`), so
         every step of every row is computed at once and only the root's GRU recurs
-        (`_teacher_forcing_parallel`); with pass_state the slots' states feed their
-        parents and the batch runs step by step (`_teacher_forcing_stepwise`).
+        (`_teacher_forcing_parallel`); with pass_state (the slots' states feed their
+        parents) or attention_state='add' (a slot's state shapes its own map) the batch
+        runs step by step (`_teacher_forcing_stepwise`).
         """
-        if self.cfg.passes_state:
+        if self.cfg.runs_every_gru:
             return self._teacher_forcing_stepwise(batch)
         return self._teacher_forcing_parallel(batch)
 

@@ -30,13 +30,12 @@ def main() -> None:
     ap.add_argument("--max-steps", type=int, default=120, help="decoding cap per episode (+1 for EOS)")
     args = ap.parse_args()
 
-    import torch
-
     from gscan_ros.data.io import iter_episodes
     from gscan_ros.model.policy import Policy
+    from gscan_ros.model.runtime import configure_torch
     from gscan_ros.training.evaluate import evaluate_episodes
 
-    torch.set_num_threads(args.threads)
+    configure_torch(args.threads)
     policy = Policy.from_checkpoint(args.checkpoint)
     with dataset_or_generated(args.data, examples=3000) as data:
         episodes = []

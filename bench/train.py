@@ -25,11 +25,12 @@ def measure(data: str, mode: str, updates: int, warmup: int, threads: int, batch
     import torch
 
     from gscan_ros.language.registry import get_parser
+    from gscan_ros.model.runtime import configure_torch
     from gscan_ros.training.batches import EpisodeStore, batch_order
     from gscan_ros.training.config import TrainConfig
     from gscan_ros.training.trainer import iter_split, keep_freed_memory, make_lexicon, new_model
 
-    torch.set_num_threads(threads)
+    configure_torch(threads)
     keep_freed_memory()
     torch.manual_seed(0)
     lexicon = make_lexicon("wordnet")

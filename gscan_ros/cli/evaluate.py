@@ -36,15 +36,14 @@ def run(args: argparse.Namespace) -> int:
     import time
 
     import numpy as np
-    import torch
 
     from gscan_ros.errors import DatasetFormatError
     from gscan_ros.model.policy import Policy, default_checkpoint_path
+    from gscan_ros.model.runtime import configure_torch
     from gscan_ros.training.evaluate import evaluate_episodes
     from gscan_ros.training.report import markdown_table, write_reports
 
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    configure_torch(args.threads)
     policy = Policy.from_checkpoint(args.checkpoint)
     by_split: dict[str, list] = {}
     for ep in _episodes(args.data, args.splits):

@@ -17,7 +17,6 @@ from __future__ import annotations
 import time
 
 import numpy as np
-import torch
 from rcl_interfaces.msg import IntegerRange, ParameterDescriptor
 from rclpy.node import Node
 from sensor_msgs.msg import Image
@@ -25,6 +24,7 @@ from std_msgs.msg import String, UInt8MultiArray
 
 from gscan_ros.errors import GscanError
 from gscan_ros.language.graph import CommandGraph
+from gscan_ros.model.runtime import configure_torch
 from gscan_ros.nodes.common import (
     ACTION,
     ATTENTION_PREFIX,
@@ -65,7 +65,7 @@ class PolicyNode(Node):
             "torch_threads", 1, describe("CPU threads for the model; one is fastest for single-step inference")
         ).value
         self.status = StatusReporter(self)
-        torch.set_num_threads(torch_threads)
+        configure_torch(torch_threads)
         if policy is None:
             from gscan_ros.model.policy import Policy
 

@@ -28,6 +28,7 @@ from gscan_ros.language.lexicon import Lexicon
 from gscan_ros.model.checkpoint import (build_model, checkpoint_dict, read_checkpoint, restore_model,
                                         save_checkpoint)
 from gscan_ros.model.compositional import ModuleTable
+from gscan_ros.model.runtime import configure_torch
 from gscan_ros.model.policy import Policy
 from gscan_ros.training.batches import EpisodeStore, EpochCursor, iterate_batches
 from gscan_ros.training.config import TrainConfig
@@ -156,8 +157,7 @@ def load_dev(data: str, cfg: TrainConfig) -> list:
 def train(cfg: TrainConfig, data: str, out_dir: str | Path, resume: bool = False, progress: bool = True) -> dict:
     """Train per `cfg` on dataset `data`; returns the final metrics dict."""
     files = RunFiles(Path(out_dir))
-    if cfg.threads:
-        torch.set_num_threads(cfg.threads)
+    configure_torch(cfg.threads)
     keep_freed_memory()
     seeds = seed_everything(cfg.seed)
     lexicon = make_lexicon(cfg.lexicon)

@@ -1,0 +1,19 @@
+"""Process-wide torch settings."""
+import torch
+
+from gscan_ros.model.runtime import configure_torch
+
+
+def test_configure_torch_flushes_denormals_and_sets_threads():
+    threads = torch.get_num_threads()
+    try:
+        torch.set_flush_denormal(False)  # torch's default (another test may have changed it)
+        assert (torch.tensor([1e-40]) * 1.0).item() != 0.0
+        configure_torch(1)
+        assert torch.get_num_threads() == 1
+        assert (torch.tensor([1e-40]) * 1.0).item() == 0.0
+        configure_torch(0)  # 0 keeps the thread count
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_flush_denormal(False)
+        torch.set_num_threads(threads)

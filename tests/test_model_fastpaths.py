@@ -64,46 +64,35 @@ def test_grouped_gru_matches_torch_gru_cells_per_slot(message):
     assert checked == expected
 
 
-def test_leaf_maps_match_the_full_formula_with_the_state_term():
-    """GSCAN_SPEC §8.4 in full, state input included, for every leaf: the fast path (which
-    drops the state term, constant over cells) gives the same maps."""
-    net = make_net()
+def _broadcast_logits(bank, u, feats, h):
+    """GSCAN_SPEC §8.4 in full: ReLU(feats W + b) ++ ReLU(h W_h + b_h), broadcast, -> Linear."""
+    feat_part = F.relu(feats @ bank.att_feat_w[u, 0] + bank.att_feat_b[u, 0])  # [cells, A]
+    state_part = F.relu(h @ bank.att_state_w[u] + bank.att_state_b[u])  # [A], broadcast
+    return feat_part @ bank.att_out_w[u, 0] + state_part @ bank.att_out_w[u, bank.max_slots] + bank.att_out_b[u]
+
+
+def _add_logits(bank, u, feats, h):
+    """attention_state='add': ReLU(feats W + b + h W_h + b_h) per cell -> Linear (the
+    concatenated state column still cancels)."""
+    state = h @ bank.att_state_w[u] + bank.att_state_b[u]
+    return F.relu(feats @ bank.att_feat_w[u, 0] + bank.att_feat_b[u, 0] + state) @ bank.att_out_w[u, 0]
+
+
+@pytest.mark.parametrize("attention_state, reference", [("broadcast", _broadcast_logits), ("add", _add_logits)])
+def test_leaf_maps_match_the_full_formula_with_the_state_term(attention_state, reference):
+    """Every leaf's map against the formula with the state input included: the fast path
+    (which drops the broadcast state term, constant over cells) gives the same maps."""
+    net = make_net(ModelConfig(attention_state=attention_state))
     rows, layout = len(GRAPHS), Layout(GRAPHS, net.table)
     feats = net.encoder(*sparse_states(random_states(np.random.default_rng(5), rows)))
     hidden = torch.randn(rows, layout.num_slots, 40, generator=torch.Generator().manual_seed(2))
     maps = net.step(net.bind(layout), hidden, feats).maps
-    bank, S = net.bank, net.bank.max_slots
     leaves = 0
     for b in range(rows):
         for j in range(layout.num_slots):
             if not layout.occupied[b, j] or layout.child[b, j].any():
                 continue
-            u, h = layout.unit[b, j], hidden[b, layout.src[b, j]]
-            feat_part = F.relu(feats[b] @ bank.att_feat_w[u, 0] + bank.att_feat_b[u, 0])  # [cells, A]
-            state_part = F.relu(h @ bank.att_state_w[u] + bank.att_state_b[u])  # [A], broadcast
-            logits = feat_part @ bank.att_out_w[u, 0] + state_part @ bank.att_out_w[u, S] + bank.att_out_b[u]
-            torch.testing.assert_close(maps[b, j], torch.softmax(logits, 0), atol=1e-6, rtol=1e-5)
-            leaves += 1
-    assert leaves >= rows
-
-
-def test_leaf_maps_with_the_state_added_before_the_relu():
-    """attention_state='add': ReLU(feats W + b + h W_h + b_h) per cell, then the output
-    layer (the concatenated state column still cancels)."""
-    net = make_net(ModelConfig(attention_state="add"))
-    rows, layout = len(GRAPHS), Layout(GRAPHS, net.table)
-    feats = net.encoder(*sparse_states(random_states(np.random.default_rng(6), rows)))
-    hidden = torch.randn(rows, layout.num_slots, 40, generator=torch.Generator().manual_seed(3))
-    maps = net.step(net.bind(layout), hidden, feats).maps
-    bank = net.bank
-    leaves = 0
-    for b in range(rows):
-        for j in range(layout.num_slots):
-            if not layout.occupied[b, j] or layout.child[b, j].any():
-                continue
-            u, h = layout.unit[b, j], hidden[b, layout.src[b, j]]
-            state = h @ bank.att_state_w[u] + bank.att_state_b[u]
-            logits = F.relu(feats[b] @ bank.att_feat_w[u, 0] + bank.att_feat_b[u, 0] + state) @ bank.att_out_w[u, 0]
+            logits = reference(net.bank, layout.unit[b, j], feats[b], hidden[b, layout.src[b, j]])
             torch.testing.assert_close(maps[b, j], torch.softmax(logits, 0), atol=1e-6, rtol=1e-5)
             leaves += 1
     assert leaves >= rows

@@ -1,6 +1,7 @@
 """Training throughput: examples/s and peak RSS, mixed batches vs the original one-command batches.
 
-    .venv/bin/python bench/train.py [--data DIR] [--updates 10] [--warmup 2] [--threads 2]
+    .venv/bin/python bench/train.py [--data DIR] [--config FILE] [--updates 10] [--warmup 2] [--threads 2]
+    .venv/bin/python bench/train.py --data data_gen/len --config configs/length.yaml   # split I, 12x12
 
 Without --data, a dataset of 6000 candidate examples is generated into a temp dir
 (seed 0; gSCAN-length episodes, ~14 actions on average). Each mode runs in its own
@@ -20,7 +21,8 @@ import time
 from _data import dataset_or_generated
 
 
-def measure(data: str, mode: str, updates: int, warmup: int, threads: int, batch_size: int) -> dict:
+def measure(data: str, mode: str, updates: int, warmup: int, threads: int, batch_size: int,
+            config: str | None = None) -> dict:
     import numpy as np
     import torch
 
@@ -38,7 +40,7 @@ def measure(data: str, mode: str, updates: int, warmup: int, threads: int, batch
     t0 = time.time()
     store = EpisodeStore(iter_split(data, "train"), parser)
     cache_s = time.time() - t0
-    model = new_model(TrainConfig(), parser, lexicon, store).train()
+    model = new_model(TrainConfig.load(config), parser, lexicon, store).train()
     opt = torch.optim.Adam(model.parameters(), lr=1e-3)
     order = batch_order(store, batch_size, mode, np.random.default_rng(0))
     order = sorted(order, key=len, reverse=True)  # full batches first (per_command: the original's 200-episode chunks)
@@ -69,16 +71,20 @@ def main() -> None:
     ap.add_argument("--warmup", type=int, default=2, help="untimed updates first")
     ap.add_argument("--threads", type=int, default=2, help="torch intra-op threads")
     ap.add_argument("--batch-size", type=int, default=200)
+    ap.add_argument("--config", help="training config whose model is measured (default: the built-in defaults; "
+                                     "configs/length.yaml for split I data)")
     ap.add_argument("--mode", choices=("mixed", "per_command"), help="(internal) measure one mode in this process")
     args = ap.parse_args()
     if args.mode:
-        print(json.dumps(measure(args.data, args.mode, args.updates, args.warmup, args.threads, args.batch_size)))
+        print(json.dumps(measure(args.data, args.mode, args.updates, args.warmup, args.threads, args.batch_size,
+                                 args.config)))
         return
     with dataset_or_generated(args.data, examples=6000) as data:
         results = {}
         for mode in ("mixed", "per_command"):
             cmd = [sys.executable, __file__, "--data", data, "--mode", mode, "--updates", str(args.updates),
-                   "--warmup", str(args.warmup), "--threads", str(args.threads), "--batch-size", str(args.batch_size)]
+                   "--warmup", str(args.warmup), "--threads", str(args.threads), "--batch-size", str(args.batch_size),
+                   *(["--config", args.config] if args.config else [])]
             results[mode] = json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout)
     for mode, r in results.items():
         print(f"{mode:12s} {r['examples_per_s']:7.1f} examples/s  ({r['steps_per_s']:.0f} steps/s, mean batch "

@@ -1,16 +1,18 @@
 """Pure conversions between gscan_ros domain objects and ROS 2 messages (std_msgs, sensor_msgs)."""
 from msg_adapters.action import action_to_msg, msg_to_action
-from msg_adapters.cdr import cdr_to_msg, msg_to_cdr
+from msg_adapters.cdr import cdr_to_msg, cdr_to_string_bytes, msg_to_cdr
 from msg_adapters.command_graph import graph_to_msg, msg_to_graph
 from msg_adapters.errors import MessageFormatError
 from msg_adapters.image import attention_to_msg, image_to_msg, msg_to_attention, msg_to_image
 from msg_adapters.observation import msg_to_observation, observation_to_msg
+from msg_adapters.world_reset import msg_to_reset, reset_to_msg
 
 __all__ = [
     "MessageFormatError",
     "action_to_msg",
     "attention_to_msg",
     "cdr_to_msg",
+    "cdr_to_string_bytes",
     "graph_to_msg",
     "image_to_msg",
     "msg_to_action",
@@ -19,5 +21,7 @@ __all__ = [
     "msg_to_graph",
     "msg_to_image",
     "msg_to_observation",
+    "msg_to_reset",
     "observation_to_msg",
+    "reset_to_msg",
 ]

@@ -81,7 +81,8 @@ def attention_to_msg(
 
 
 def msg_to_attention(msg: Image, *, grid_size: int = GRID_SIZE) -> np.ndarray:
-    """float32[grid, grid] in [0, 1] (max-normalized) from a mono8 attention image."""
+    """float32[grid, grid] in [0, 1] (max-normalized) from a mono8 attention image of a
+    `grid_size` world (the 6x6 compositional grid by default)."""
     pixels = _msg_pixels(msg, MONO8, 1)[:, :, 0]
     if msg.height != msg.width or msg.height % grid_size:
         raise MessageFormatError(

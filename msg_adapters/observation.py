@@ -11,11 +11,10 @@ from __future__ import annotations
 import numpy as np
 from std_msgs.msg import MultiArrayDimension, UInt8MultiArray
 
-from gscan_ros.world.types import GRID_SIZE, NUM_CHANNELS
+from gscan_ros.world.types import NUM_CHANNELS, SUPPORTED_GRID_SIZES
 from msg_adapters.errors import MessageFormatError
 
 OBSERVATION_LABELS: tuple[str, ...] = ("row", "col", "channel")
-OBSERVATION_SHAPE: tuple[int, ...] = (GRID_SIZE, GRID_SIZE, NUM_CHANNELS)
 
 
 def _strides(shape: tuple[int, ...]) -> tuple[int, ...]:
@@ -40,11 +39,12 @@ def observation_to_msg(observation: np.ndarray) -> UInt8MultiArray:
     return msg
 
 
-def msg_to_observation(msg: UInt8MultiArray, *, shape: tuple[int, ...] | None = OBSERVATION_SHAPE) -> np.ndarray:
+def msg_to_observation(msg: UInt8MultiArray, *, shape: tuple[int, ...] | None = None) -> np.ndarray:
     """uint8[row, col, channel] view of the message data; rejects any other layout.
 
-    `shape` pins the expected sizes (default 6x6x16); pass None to accept any grid.
-    The result is read-only (it shares the message's buffer); copy it to modify.
+    The grid comes from the layout: square, a supported size (4-16), 16 channels;
+    `shape` pins the exact sizes instead. The result is read-only (it shares the
+    message's buffer); copy it to modify.
     """
     dims = msg.layout.dim
     labels = tuple(d.label for d in dims)
@@ -53,6 +53,10 @@ def msg_to_observation(msg: UInt8MultiArray, *, shape: tuple[int, ...] | None = 
     sizes = tuple(int(d.size) for d in dims)
     if shape is not None and sizes != tuple(shape):
         raise MessageFormatError(f"observation must have sizes {list(shape)}, got {list(sizes)}")
+    if shape is None and (sizes[0] != sizes[1] or sizes[0] not in SUPPORTED_GRID_SIZES or sizes[2] != NUM_CHANNELS):
+        raise MessageFormatError(f"observation must be a square grid of {SUPPORTED_GRID_SIZES[0]} to "
+                                 f"{SUPPORTED_GRID_SIZES[-1]} cells a side with {NUM_CHANNELS} channels, "
+                                 f"got sizes {list(sizes)}")
     strides = tuple(int(d.stride) for d in dims)
     if strides != _strides(sizes):
         raise MessageFormatError(

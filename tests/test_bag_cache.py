@@ -1,10 +1,16 @@
-"""The decode-once cache returns what the bag holds and notices when the bag changes."""
+"""The decode-once cache returns what the bag holds, notices when the bag changes, rebuilds a
+cache file it cannot read, and never lets a fast load hide that its bag had lost data."""
+import logging
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
-from bag_support import make_episodes
+from bag_support import data_end, make_episodes, mcap_file, truncated_copy
 from gscan_ros.data import bag_cache
-from gscan_ros.data.bag import write_bag
+from gscan_ros.data.bag import BagWriter, repair_bag, write_bag
 from gscan_ros.data.bag_cache import cache_path, load_episode_cache
 
 
@@ -75,3 +81,98 @@ def test_read_only_bag_still_loads(bag, monkeypatch, caplog):
     monkeypatch.setattr(bag_cache.np, "savez", refuse)
     assert load_episode_cache(bag_dir).episodes == episodes
     assert "cannot write bag cache" in caplog.text
+
+
+@pytest.mark.parametrize("damage", ["empty", "garbage", "torn", "directory"])
+def test_unreadable_cache_file_is_rebuilt_with_a_warning(bag, caplog, damage):
+    bag_dir, episodes = bag
+    load_episode_cache(bag_dir)
+    path = cache_path(bag_dir)
+    data = path.read_bytes()
+    if damage == "directory":
+        path.unlink()
+        path.mkdir()
+    else:
+        path.write_bytes({"empty": b"", "garbage": b"garbage" * 10, "torn": data[: len(data) // 2]}[damage])
+    with caplog.at_level(logging.WARNING, logger="gscan_ros.data.bag_cache"):
+        assert load_episode_cache(bag_dir).episodes == episodes
+    assert "unreadable" in caplog.text and "rebuilding" in caplog.text
+    if damage != "directory":
+        assert load_episode_cache(bag_dir).episodes == episodes  # the rebuilt file loads
+
+
+def test_inconsistent_cache_arrays_are_rebuilt(bag, caplog):
+    bag_dir, episodes = bag
+    load_episode_cache(bag_dir)
+    with np.load(cache_path(bag_dir)) as data:
+        arrays = {name: data[name] for name in data.files}
+    arrays["action_offsets"] = arrays["action_offsets"][:-3]  # same key, wrong shapes
+    np.savez(cache_path(bag_dir), **arrays)
+    with caplog.at_level(logging.WARNING, logger="gscan_ros.data.bag_cache"):
+        cache = load_episode_cache(bag_dir)
+    assert cache.episodes == episodes and "unreadable" in caplog.text
+
+
+def test_touched_bag_rebuilds_the_cache(bag, monkeypatch):
+    bag_dir, episodes = bag
+    load_episode_cache(bag_dir)
+    stat = mcap_file(bag_dir).stat()
+    os.utime(mcap_file(bag_dir), ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))
+    decoded = []
+    decode = bag_cache._decode
+    monkeypatch.setattr(bag_cache, "_decode", lambda *args: decoded.append(1) or decode(*args))
+    assert load_episode_cache(bag_dir).episodes == episodes
+    assert decoded == [1]
+    assert load_episode_cache(bag_dir).episodes == episodes and decoded == [1]
+
+
+@pytest.fixture
+def truncated_bag(tmp_path):
+    episodes = make_episodes(40, seed=2)
+    with BagWriter(tmp_path / "full", chunk_size=4096) as writer:
+        for episode in episodes:
+            writer.write_episode(episode)
+    return truncated_copy(tmp_path / "full", tmp_path / "cut", data_end(tmp_path / "full") // 2), episodes
+
+
+def test_cache_of_a_damaged_bag_warns_on_every_load(truncated_bag, monkeypatch, caplog):
+    bag_dir, episodes = truncated_bag
+    with caplog.at_level(logging.WARNING, logger="gscan_ros.data.bag_cache"):
+        cache = load_episode_cache(bag_dir)
+    lost = len(episodes) - len(cache)
+    assert 0 < len(cache) < len(episodes)
+    assert cache.episodes == episodes[: len(cache)]
+    assert not cache.complete and cache.lost_episodes == lost
+    assert cache.source["state"] == "truncated"
+    assert f"built from a damaged bag: {lost} episodes lost" in caplog.text
+
+    def no_decode(*args, **kwargs):
+        raise AssertionError("bag decoded again")
+
+    monkeypatch.setattr(bag_cache, "_decode", no_decode)
+    for _ in range(2):  # later loads come from the cache file and still say so
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="gscan_ros.data.bag_cache"):
+            again = load_episode_cache(bag_dir, ["train"])
+        assert f"built from a damaged bag: {lost} episodes lost" in caplog.text
+        assert not again.complete and again.subset([0]).lost_episodes == lost
+
+
+def test_damaged_bag_warning_reaches_stderr_without_logging_setup(truncated_bag):
+    bag_dir, _ = truncated_bag
+    code = "import sys; from gscan_ros.data.bag_cache import load_episode_cache; load_episode_cache(sys.argv[1])"
+    for _ in range(2):  # the build, then a load from the cache file
+        run = subprocess.run([sys.executable, "-c", code, str(bag_dir)], capture_output=True, text=True, timeout=120)
+        assert run.returncode == 0, run.stderr
+        assert "built from a damaged bag" in run.stderr and "Traceback" not in run.stderr
+
+
+def test_complete_and_repaired_bags_load_without_warnings(bag, truncated_bag, tmp_path, caplog):
+    bag_dir, _ = bag
+    cut, _ = truncated_bag
+    repair_bag(cut, tmp_path / "repaired")
+    with caplog.at_level(logging.WARNING):
+        for path in (bag_dir, tmp_path / "repaired"):
+            for _ in range(2):
+                assert load_episode_cache(path).complete
+    assert caplog.text == ""

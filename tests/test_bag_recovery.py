@@ -1,21 +1,17 @@
-"""Damaged bags: a torn tail is recovered episode by episode, anything else is one clear error."""
+"""Damaged bags: a torn tail is recovered episode by episode, damage in the middle costs only
+the episodes of the damaged chunks, a file that is not MCAP is one clear error."""
+import io
 import logging
-import os
-import signal
-import subprocess
-import sys
-import textwrap
 from pathlib import Path
 
 import pytest
 from mcap.reader import make_reader
+from mcap.records import Message
+from mcap.stream_reader import StreamReader, breakup_chunk
 
-from bag_support import make_episodes
-from gscan_ros.data.bag import BagWriter, iter_bag_episodes, read_bag_info
+from bag_support import damaged_copy, data_end, kill_writer, make_episodes, mcap_file, truncated_copy
+from gscan_ros.data.bag import EPISODE_PERIOD_NS, BagWriter, iter_bag_episodes, read_bag_info, write_bag
 from gscan_ros.errors import DatasetFormatError
-
-TESTS = Path(__file__).parent
-
 
 @pytest.fixture(scope="module")
 def episodes():
@@ -32,23 +28,9 @@ def small_chunk_bag(tmp_path_factory, episodes):
     return bag_dir
 
 
-def _data_end(bag: Path) -> int:
-    """File offset after the last chunk (its message indexes and the summary follow)."""
-    with open(bag / "bag_0.mcap", "rb") as f:
-        chunks = make_reader(f).get_summary().chunk_indexes
-    return max(c.chunk_start_offset + c.chunk_length for c in chunks)
-
-
-def _truncated_copy(src: Path, dst: Path, keep: int) -> Path:
-    dst.mkdir()
-    (dst / "metadata.yaml").write_text((src / "metadata.yaml").read_text().replace("bag_0.mcap", f"{dst.name}_0.mcap"))
-    (dst / f"{dst.name}_0.mcap").write_bytes((src / "bag_0.mcap").read_bytes()[:keep])
-    return dst
-
-
 @pytest.mark.parametrize("fraction", [0.02, 0.3, 0.5, 0.77, 0.95, 0.9999])
 def test_truncated_file_yields_a_prefix_and_counts_the_loss(small_chunk_bag, episodes, tmp_path, fraction, caplog):
-    bag = _truncated_copy(small_chunk_bag, tmp_path / "cut", int(_data_end(small_chunk_bag) * fraction))
+    bag = truncated_copy(small_chunk_bag, tmp_path / "cut", int(data_end(small_chunk_bag) * fraction))
     reader = iter_bag_episodes(bag)
     with caplog.at_level(logging.WARNING, logger="gscan_ros.data.bag"):
         recovered = list(reader)
@@ -66,47 +48,15 @@ def test_truncated_file_yields_a_prefix_and_counts_the_loss(small_chunk_bag, epi
 
 
 def test_truncation_inside_the_summary_loses_nothing(small_chunk_bag, episodes, tmp_path):
-    bag = _truncated_copy(small_chunk_bag, tmp_path / "cut", _data_end(small_chunk_bag) + 10)
+    bag = truncated_copy(small_chunk_bag, tmp_path / "cut", data_end(small_chunk_bag) + 10)
     reader = iter_bag_episodes(bag)
     assert list(reader) == episodes
     assert reader.report.truncated and reader.report.lost_messages == 0 and reader.report.lost_episodes == 0
 
 
-WRITER = textwrap.dedent(
-    """
-    import sys
-    sys.path.insert(0, {tests!r})
-    import itertools, random
-    from bag_support import make_episode
-    from gscan_ros.data.bag import BagWriter
-
-    writer = BagWriter({bag!r}, chunk_size=2048).open()
-    rng = random.Random(11)
-    for i in itertools.count():  # until killed
-        writer.write_episode(make_episode(rng, i))
-        if i == 40:
-            writer.flush()
-            print("flushed", i + 1, flush=True)
-    """
-)
-
-
 def test_killed_writer_leaves_every_flushed_episode_readable(tmp_path):
     bag = tmp_path / "killed"
-    child = subprocess.Popen(
-        [sys.executable, "-c", WRITER.format(tests=str(TESTS), bag=str(bag))],
-        stdout=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
-    )
-    try:
-        line = child.stdout.readline()
-        assert line.startswith("flushed"), line
-        flushed = int(line.split()[1])
-        os.killpg(child.pid, signal.SIGKILL)
-    finally:
-        child.kill()
-        child.wait(timeout=30)
+    flushed = kill_writer(bag)
     assert not read_bag_info(bag).closed
     reader = iter_bag_episodes(bag)
     recovered = list(reader)
@@ -116,20 +66,120 @@ def test_killed_writer_leaves_every_flushed_episode_readable(tmp_path):
     assert reader.report.lost_episodes == reader.report.incomplete_episodes <= 1
 
 
-def test_corrupt_chunk_is_one_error_naming_the_file(small_chunk_bag, tmp_path):
-    data = bytearray((small_chunk_bag / "bag_0.mcap").read_bytes())
-    middle = len(data) // 2
-    data[middle : middle + 64] = bytes(64)
-    bag = _truncated_copy(small_chunk_bag, tmp_path / "bad", len(data))
-    (bag / "bad_0.mcap").write_bytes(bytes(data))
-    with pytest.raises(DatasetFormatError, match=r"bad_0\.mcap: corrupt MCAP data") as err:
-        list(iter_bag_episodes(bag))
-    assert "\n" not in str(err.value)
+def _chunk_episodes(bag: Path) -> list[tuple[int, int, set[int]]]:
+    """(start, end, ids of the episodes with a message in it) for each chunk of an intact bag
+    (generated times: episode i's messages lie in [i s, i s + 1 s))."""
+    chunks = []
+    with open(mcap_file(bag), "rb") as f:
+        for index in make_reader(f).get_summary().chunk_indexes:
+            f.seek(index.chunk_start_offset)
+            raw = f.read(index.chunk_length)
+            chunk = next(StreamReader(io.BytesIO(raw), skip_magic=True, emit_chunks=True).records)
+            ids = {m.log_time // EPISODE_PERIOD_NS for m in breakup_chunk(chunk) if isinstance(m, Message)}
+            chunks.append((index.chunk_start_offset, index.chunk_start_offset + index.chunk_length, ids))
+    return chunks
+
+
+# Where the flipped byte goes, given the chunks' (start, end): inside a chunk's compressed
+# data, its length field or its opcode; the first chunk holds the schema/channel records
+# (the summary's copies then name the channels); between chunks lie message indexes.
+FLIPS = {
+    "first chunk": lambda chunks: chunks[0][0] + 60,
+    "chunk at 30%": lambda chunks: sum(chunks[len(chunks) * 3 // 10][:2]) // 2,
+    "chunk length at 50%": lambda chunks: chunks[len(chunks) // 2][0] + 3,
+    "chunk opcode at 70%": lambda chunks: chunks[len(chunks) * 7 // 10][0],
+    "last chunk": lambda chunks: chunks[-1][1] - 5,
+    "message index": lambda chunks: chunks[len(chunks) // 3][1] + 30,
+}
+
+
+@pytest.mark.parametrize("where", FLIPS)
+def test_flipped_byte_loses_only_the_episodes_of_its_chunk(small_chunk_bag, episodes, tmp_path, where):
+    chunks = _chunk_episodes(small_chunk_bag)
+    offset = FLIPS[where]([c[:2] for c in chunks])
+
+    def flip(data):
+        data[offset] ^= 0xFF
+
+    bag = damaged_copy(small_chunk_bag, tmp_path / "flip", flip)
+    reader = iter_bag_episodes(bag)
+    recovered = list(reader)
+    hit = [ids for start, end, ids in chunks if start <= offset < end]
+    lost = set().union(*hit)
+    # Every episode with no message in the damaged chunk is recovered, in order, and the
+    # episodes it touched are dropped, not stitched together from what is left.
+    assert recovered == [e for i, e in enumerate(episodes) if i not in lost]
+    report = reader.report
+    assert report.lost_episodes == len(lost)
+    assert not report.truncated
+    if hit:
+        assert report.corrupt and report.lost_chunks == 1 and len(report.corrupt_regions) == 1
+        assert report.lost_messages == sum(1 + 2 * (len(episodes[i].actions) + 1) for i in lost)
+        assert "corrupt" in report.summary()
+
+
+def test_zeroed_bytes_in_the_middle_are_skipped(small_chunk_bag, episodes, tmp_path):
+    middle = data_end(small_chunk_bag) // 2
+
+    def zero(data):
+        data[middle : middle + 5000] = bytes(5000)  # more than one 4 KiB chunk
+
+    bag = damaged_copy(small_chunk_bag, tmp_path / "bad", zero)
+    reader = iter_bag_episodes(bag)
+    recovered = list(reader)
+    assert recovered[-1] == episodes[-1] and recovered[0] == episodes[0]
+    kept = {e.example_id for e in recovered}
+    assert recovered == [e for e in episodes if e.example_id in kept]  # in order, none stitched
+    assert reader.report.corrupt and not reader.report.truncated and reader.report.lost_chunks >= 2
+    assert reader.report.lost_episodes == len(episodes) - len(recovered) >= 2
+
+
+def test_damaged_summary_loses_nothing_but_is_reported(small_chunk_bag, episodes, tmp_path):
+    end = data_end(small_chunk_bag)
+    size = (small_chunk_bag / "bag_0.mcap").stat().st_size
+
+    def flip(data):
+        data[(end + size) // 2] ^= 0xFF
+
+    reader = iter_bag_episodes(damaged_copy(small_chunk_bag, tmp_path / "summary", flip))
+    assert list(reader) == episodes
+    assert reader.report.lost_episodes == reader.report.lost_messages == 0
+    assert not reader.report.truncated
+
+
+def test_cut_inside_the_first_chunk_is_truncated_not_corrupt(episodes, tmp_path):
+    full = tmp_path / "bag"
+    write_bag(full, episodes)  # one 1 MiB chunk holds them all
+    assert len(_chunk_episodes(full)) == 1
+    bag = truncated_copy(full, tmp_path / "cut", data_end(full) // 2)
+    reader = iter_bag_episodes(bag)
+    assert list(reader) == []
+    report = reader.report
+    assert report.truncated and not report.corrupt and report.lost_chunks == 1
+    assert report.lost_episodes == len(episodes)
+    assert report.summary().startswith(f"{bag}: truncated: recovered 0 of {len(episodes)}")
+
+
+def test_killed_writer_with_a_damaged_first_chunk_recovers_the_rest(tmp_path):
+    """No summary to name the channels: a gscan_ros bag's metadata.yaml lists them in id order."""
+    bag = tmp_path / "killed"
+    kill_writer(bag)
+    data = bytearray((bag / "killed_0.mcap").read_bytes())
+    header_end = 8 + 9 + int.from_bytes(data[9:17], "little")
+    assert data[header_end] == 0x06  # the first chunk: schemas, channels, first messages
+    data[header_end + 80] ^= 0xFF
+    (bag / "killed_0.mcap").write_bytes(bytes(data))
+    reader = iter_bag_episodes(bag)
+    recovered = list(reader)
+    first = recovered[0].example_id
+    assert first > 0 and len(recovered) > 30
+    assert recovered == make_episodes(first + len(recovered), seed=11)[first:]
+    assert reader.report.corrupt and reader.report.truncated
 
 
 @pytest.mark.parametrize("content", [b"", b"not an mcap file at all\n" * 10, b"\x89MCAP0\r\n" + bytes(3)])
 def test_not_an_mcap_file(small_chunk_bag, tmp_path, content):
-    bag = _truncated_copy(small_chunk_bag, tmp_path / "junk", 0)
+    bag = truncated_copy(small_chunk_bag, tmp_path / "junk", 0)
     (bag / "junk_0.mcap").write_bytes(content)
     with pytest.raises(DatasetFormatError, match=r"junk_0\.mcap: not an MCAP file"):
         list(iter_bag_episodes(bag))
@@ -138,7 +188,7 @@ def test_not_an_mcap_file(small_chunk_bag, tmp_path, content):
 def test_metadata_problems_name_the_file(small_chunk_bag, tmp_path):
     with pytest.raises(DatasetFormatError, match="no metadata.yaml"):
         iter_bag_episodes(tmp_path)
-    bag = _truncated_copy(small_chunk_bag, tmp_path / "meta", 10)
+    bag = truncated_copy(small_chunk_bag, tmp_path / "meta", 10)
     (bag / "metadata.yaml").write_text("rosbag2_bagfile_information: [unclosed")
     with pytest.raises(DatasetFormatError, match="metadata.yaml: invalid YAML"):
         read_bag_info(bag)

@@ -18,6 +18,7 @@ from gscan_ros.data.sampling import (
     sample_placements,
 )
 from gscan_ros.data.splits import held_out_splits
+from gscan_ros.errors import GscanError
 from gscan_ros.world import resolve_target
 
 N = 2500
@@ -146,8 +147,10 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     assert main(["verify", str(tmp_path), "--quiet"]) == 1
     err = capsys.readouterr().err.strip()
     assert err == "gscan-ros verify: error: example 0 of split 'train': field 'situation': missing"
-    assert main(["generate", "--out", str(tmp_path), "--examples", "0"]) == 1
-    assert "--examples must be positive" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_info:
+        main(["generate", "--out", str(tmp_path), "--examples", "0"])
+    assert exit_info.value.code == 1
+    assert "argument --examples: must be an integer >= 1" in capsys.readouterr().err
 
 
 def test_cli_render_png_and_gif(compositional, tmp_path):
@@ -173,3 +176,61 @@ def test_mcap_format_holds_the_same_episodes(tmp_path):
     got = list(iter_episodes(tmp_path / "bags" / "train"))
     assert [(e.command, e.situation, e.actions) for e in got] == \
         [(e.command, e.situation, e.actions) for e in expected]
+
+
+def _generate(out, *extra) -> int:
+    return main(["generate", "--out", str(out), "--examples", "60", "--seed", "5", "--workers", "1", "--quiet",
+                 *extra])
+
+
+def _files(root) -> dict:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def test_generate_refuses_an_existing_dataset_without_overwrite(tmp_path, capsys):
+    (tmp_path / "dataset.txt").write_text("{}")
+    (tmp_path / "train").mkdir()
+    (tmp_path / "train" / "metadata.yaml").write_text("rosbag2_bagfile_information: {}\n")
+    before = _files(tmp_path)
+    for fmt in ("txt", "mcap"):
+        assert _generate(tmp_path, "--format", fmt) == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "already holds a dataset" in err[0] and "--overwrite" in err[0]
+        assert _files(tmp_path) == before
+
+
+def test_generate_overwrite_mcap_leaves_no_stale_split(tmp_path):
+    """A split that gets no examples this time must not keep the old run's bag."""
+    from gscan_ros.data.io import split_bags
+
+    assert _generate(tmp_path, "--format", "txt") == 0
+    assert _generate(tmp_path, "--format", "mcap", "--percentage-dev", "0.2", "--overwrite") == 0
+    assert "dev" in split_bags(tmp_path) and not (tmp_path / "dataset.txt").exists()
+    (tmp_path / "notes.txt").write_text("mine")
+    (tmp_path / "dev" / ".cache").mkdir()
+    (tmp_path / "dev" / ".cache" / "episodes.npz").write_bytes(b"cache")
+    assert _generate(tmp_path, "--format", "mcap", "--percentage-dev", "0", "--overwrite") == 0
+    assert "dev" not in split_bags(tmp_path) and not (tmp_path / "dev").exists()
+    assert "train" in split_bags(tmp_path) and (tmp_path / "notes.txt").read_text() == "mine"
+
+
+def test_generate_overwrite_keeps_foreign_files_in_a_split_bag(tmp_path, capsys):
+    assert _generate(tmp_path, "--format", "mcap") == 0
+    (tmp_path / "train" / "thesis.tex").write_text("years of work")
+    before = _files(tmp_path)
+    assert _generate(tmp_path, "--format", "mcap", "--overwrite") == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "thesis.tex" in err[0]
+    assert _files(tmp_path) == before
+
+
+def test_k_shot_beyond_the_adverb_1_examples_is_refused_naming_the_maximum(tmp_path):
+    config = GenerationConfig(seed=1, max_examples=200, k_shot=100_000)
+    with pytest.raises(GscanError, match=r"--k-shot must be in \[0, \d+\]") as error:
+        generate_dataset(tmp_path / "out", config)
+    assert not (tmp_path / "out").exists()
+    maximum = int(str(error.value).split("[0, ")[1].split("]")[0])
+    report = generate_dataset(tmp_path / "out", GenerationConfig(seed=1, max_examples=200, k_shot=maximum))
+    header = read_header(report.path).extra["gscan_ros"]
+    assert maximum > 0 and report.split_sizes["adverb_1"] == 0
+    assert header["config"]["k_shot"] == len(header["k_shot_train_indices"]) == maximum

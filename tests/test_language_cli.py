@@ -41,3 +41,20 @@ def test_parse_errors_are_one_line_and_exit_1(capsys, argv, message):
     assert main(argv) == 1
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1
+
+
+def test_parse_says_what_a_paraphrase_was_understood_as(capsys):
+    assert main(["parse", "Push", "the", "small", "blue", "cylinder"]) == 0
+    assert capsys.readouterr().out.splitlines()[:4] == [
+        "understood: push a blue small cylinder",
+        "  the → a (determiner)",
+        "  small blue → blue small (adjective order: color before size)",
+        "",
+    ]
+
+
+def test_parse_json_of_a_paraphrase_is_the_canonical_graph_plus_the_typed_text(capsys):
+    assert main(["parse", "--json", "walk to a large circle"]) == 0
+    assert main(["parse", "--json", "walk to a big circle"]) == 0
+    paraphrased, canonical = (json.loads(line) for line in capsys.readouterr().out.splitlines())
+    assert paraphrased.pop("typed") == "walk to a large circle" and paraphrased == canonical

@@ -80,6 +80,34 @@ def test_skipping_difflib_for_long_words_changes_no_suggestion(known, padding):
     """The length bound is exact: past it difflib finds nothing, and at it the longest token still matches."""
     word = known + "q" * padding
     expected = difflib.get_close_matches(word, tokens_impl._HINTS, n=3, cutoff=tokens_impl._CUTOFF)
-    assert ("closest known words" in tokens_impl._unknown_word_message(word)) == bool(expected)
+    assert ("closest known words" in tokens_impl.unknown_word_message(word)) == bool(expected)
     if known == "while zigzagging":  # the longest token: matches up to the bound, not beyond
         assert bool(expected) == (len(word) <= tokens_impl._MATCHABLE_LEN)
+
+
+@pytest.mark.parametrize(
+    "data, message",
+    [
+        (b"walk to a \xff circle", r"not valid UTF-8 \(byte 0xff at position 10\)"),
+        ("walk to a \udcff circle", r"not valid UTF-8 \(byte 0xff at position 10\)"),  # argv's surrogateescape
+        (b"walk\x00 to a circle", r"non-printable character 0x0000 at position 4"),
+        ("walk\x00 to a circle", r"non-printable character 0x0000 at position 4"),
+    ],
+)
+def test_command_text_rejects_bytes_and_str_alike(data, message):
+    """One check for the CLI (str from argv) and parser_node (bytes off the wire)."""
+    with pytest.raises(CommandError, match=message):
+        tokens_impl.command_text(data)
+
+
+def test_command_text_decodes_valid_utf8():
+    assert tokens_impl.command_text("walk to a circle".encode()) == "walk to a circle"
+    assert tokens_impl.command_text("walk to a circle") == "walk to a circle"
+
+
+def test_cli_parse_rejects_invalid_utf8_with_the_shared_message(capsys):
+    from gscan_ros.cli import main
+
+    assert main(["parse", "--lexicon", "none", "walk to a \udcff circle"]) == 1
+    err = capsys.readouterr().err
+    assert "command is not valid UTF-8 (byte 0xff at position 10)" in err and err.count("\n") == 1

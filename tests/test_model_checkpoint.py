@@ -66,3 +66,18 @@ def test_unreadable_checkpoint(tmp_path, content):
         path.write_bytes(content)
     with pytest.raises(CheckpointError, match="bad.pt"):
         Policy.from_checkpoint(path)
+
+
+class Pickled:
+    """A class torch's weights_only unpickler refuses (it would run code on load)."""
+
+
+def test_a_checkpoint_with_pickled_objects_is_refused_without_unsafe_advice(tmp_path):
+    path = tmp_path / "pickled.pt"
+    torch.save({"format": 1, "payload": Pickled()}, path)
+    with pytest.raises(CheckpointError) as info:
+        read_checkpoint(path)
+    message = str(info.value)
+    assert "pickled.pt" in message and "Pickled" in message  # what was refused
+    assert "weights_only" not in message and "trust" not in message  # torch's advice to load it anyway
+    assert "\n" not in message

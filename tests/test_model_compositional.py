@@ -185,6 +185,31 @@ def test_layouts_of_a_new_table_never_reuse_another_tables_levels():
         assert int(layout.module.max()) < len(then.specs)
 
 
+def test_minmax_size_maps_pass_the_normalised_map_to_the_parent():
+    """size_map='minmax' (the original's quirk Q16): a big|small slot's map is its softmax
+    map min-max normalised; every other slot's map is unchanged."""
+    from gscan_ros.model.compositional import minmax_normalize
+
+    soft, mm = make_net(ModelConfig()), make_net(ModelConfig(size_map="minmax"))
+    layout = Layout(GRAPHS, soft.table)
+    obs = random_states(np.random.default_rng(9), len(GRAPHS))
+    feats = soft.encoder(*sparse_states(obs))
+    maps = {}
+    for name, net in (("softmax", soft), ("minmax", mm)):
+        bound = net.bind(layout)
+        maps[name] = net.step(bound, net.initial_hidden(len(GRAPHS), layout.num_slots), feats).maps
+    size_slots = layout.has_antonyms
+    assert size_slots.any() and (~size_slots & layout.occupied).any()
+    first_size_block = next(i for i, (lo, hi) in enumerate(layout.blocks) if size_slots[:, lo:hi].any())
+    lo, hi = layout.blocks[first_size_block]
+    # blocks up to and including the first size block see identical inputs in both nets
+    torch.testing.assert_close(maps["minmax"][:, lo:hi][size_slots[:, lo:hi]],
+                               minmax_normalize(maps["softmax"][:, lo:hi][size_slots[:, lo:hi]]))
+    torch.testing.assert_close(maps["minmax"][:, :lo], maps["softmax"][:, :lo])
+    later = ~size_slots[:, hi:] & layout.occupied[:, hi:]  # parents read the normalised map
+    assert not torch.allclose(maps["minmax"][:, hi:][later], maps["softmax"][:, hi:][later])
+
+
 @pytest.mark.parametrize("attention_state", ["broadcast", "add"])
 def test_a_modules_state_moves_its_map_only_when_added(attention_state):
     net = make_net(ModelConfig(attention_state=attention_state))

@@ -197,12 +197,12 @@ def test_segment_matmul_gradients():
     assert torch.autograd.gradcheck(lambda a, b: _SegmentMatmul.apply(a, b, sizes), (x, w))
 
 
-@pytest.mark.parametrize("quantum", [1, 4])
-def test_all_steps_at_once_matches_step_by_step(quantum):
+@pytest.mark.parametrize("quantum, size_map", [(1, "softmax"), (4, "softmax"), (1, "minmax")])
+def test_all_steps_at_once_matches_step_by_step(quantum, size_map):
     from tests.test_model_compositional import synthetic_batch
 
     graphs = GRAPHS + [binary()]
-    net = make_net(graphs=graphs)
+    net = make_net(ModelConfig(size_map=size_map), graphs=graphs)
     batch, _, _ = synthetic_batch(net, graphs, [4, 7, 3, 6, 5, 2], seed=3, quantum=quantum)
     fast, slow = net._teacher_forcing_parallel(batch), net._teacher_forcing_stepwise(batch)
     torch.testing.assert_close(fast.logits, slow.logits, atol=1e-5, rtol=1e-5)

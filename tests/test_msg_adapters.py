@@ -156,3 +156,40 @@ def test_cdr_round_trip_matches_rclpy_serialization():
     msg = action_to_msg(Action.PULL)
     assert msg_to_cdr(msg) == rclpy_serialize(msg)
     assert cdr_to_msg(msg_to_cdr(msg), String).data == "pull"
+
+
+@pytest.mark.parametrize("text", ["", "walk to a circle", "größe ✓"])
+def test_string_bytes_are_the_serialized_text(text):
+    from msg_adapters import cdr_to_string_bytes
+
+    assert cdr_to_string_bytes(msg_to_cdr(String(data=text))) == text.encode()
+
+
+def test_string_bytes_keep_what_rclpy_would_replace_or_cut():
+    """rclpy decodes b'\\xff' to U+FFFD and stops at NUL; the raw bytes show both."""
+    from msg_adapters import cdr_to_string_bytes
+
+    for payload in (b"walk \xff", b"walk\x00 to"):
+        cdr = b"\x00\x01\x00\x00" + (len(payload) + 1).to_bytes(4, "little") + payload + b"\x00"
+        assert cdr_to_string_bytes(cdr) == payload
+    big_endian = b"\x00\x00\x00\x00" + (3).to_bytes(4, "big") + b"ab\x00"
+    assert cdr_to_string_bytes(big_endian) == b"ab"
+
+
+@pytest.mark.parametrize("cdr", [b"", b"\x00\x01\x00\x00\xff\xff\xff\xffab\x00", b"\x00\x02\x00\x00\x01\x00\x00\x00\x00"])
+def test_string_bytes_reject_malformed_cdr(cdr):
+    from msg_adapters import cdr_to_string_bytes
+
+    with pytest.raises(MessageFormatError):
+        cdr_to_string_bytes(cdr)
+
+
+def test_world_reset_stamp_round_trips_through_cdr():
+    from std_msgs.msg import Header
+
+    from msg_adapters import msg_to_reset, reset_to_msg
+
+    t_ns = 1_796_007_930_739_793_393
+    assert msg_to_reset(cdr_to_msg(msg_to_cdr(reset_to_msg(t_ns)), Header)) == t_ns
+    with pytest.raises(MessageFormatError):
+        msg_to_reset(String(data="now"))

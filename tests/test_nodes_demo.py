@@ -38,7 +38,7 @@ def test_demo_prints_the_episodes_and_writes_bag_and_gifs(tmp_path, monkeypatch,
 def test_demo_with_an_unparsable_command_fails_with_one_line(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("ROS_DOMAIN_ID", str(fresh_domain_id()))
     checkpoint = tiny_checkpoint(tmp_path / "tiny.pt")
-    code = main(["demo", "--checkpoint", str(checkpoint), "--command", "fly to the moon", "--out", str(tmp_path)])
+    code = main(["demo", "--checkpoint", str(checkpoint), "--command", "fly to the moon", "--out", str(tmp_path / "demo")])
     assert code == 1
     (line,) = capsys.readouterr().err.strip().splitlines()
     assert line.startswith("gscan-ros demo: error: unknown word 'fly'")

@@ -7,9 +7,16 @@ from gscan_ros.language import get_parser
 from gscan_ros.nodes.common import EVENT_QOS, LATCHED_LOG_QOS
 from gscan_ros.nodes.harness import Probe, fresh_domain_id
 from gscan_ros.nodes.parser_node import ParserNode
-from msg_adapters import msg_to_graph
+from msg_adapters import msg_to_cdr, msg_to_graph
 
 from ros_helpers import parameters, tiny_checkpoint
+
+
+def cdr(text: str | bytes) -> bytes:
+    """A serialized std_msgs/String, as the parser's raw subscription receives it (any bytes)."""
+    if isinstance(text, str):
+        return msg_to_cdr(String(data=text))
+    return b"\x00\x01\x00\x00" + (len(text) + 1).to_bytes(4, "little") + text + b"\x00"
 
 
 @pytest.fixture(scope="module")
@@ -33,7 +40,7 @@ def parser(probe, checkpoint):
 
 def test_command_becomes_the_checkpoint_parsers_graph(probe, parser):
     graphs = probe.record("command_graph", String, LATCHED_LOG_QOS)
-    parser.on_command(String(data="Walk to a RED circle while spinning"))
+    parser.on_command(cdr("Walk to a RED circle while spinning"))
     probe.spin_until(lambda: graphs, what="a command graph")
     assert msg_to_graph(graphs[0]) == get_parser("semantic").parse("walk to a red circle while spinning")
 
@@ -44,7 +51,10 @@ BAD = {
     "10 kB": ("x" * 10_000, "longer than max_command_chars=1000"),
     "10 kB of words": ("walk " * 2_000, "longer than max_command_chars=1000"),
     "ungrammatical": ("circle a to walk", "not in the gSCAN command grammar"),
-    "control characters": ("walk\x00\x07 to a circle", "rejected command"),
+    "control characters": ("walk\x07 to a circle", "non-printable character 0x0007 at position 4"),
+    # rclpy would decode these to 'walk to a \ufffd circle' and 'walk' (both accepted)
+    "invalid UTF-8": (b"walk to a \xff circle", "not valid UTF-8 (byte 0xff at position 10)"),
+    "embedded NUL": (b"walk\x00 to a circle", "non-printable character 0x0000 at position 4"),
 }
 
 
@@ -52,7 +62,7 @@ def test_each_bad_command_gives_one_short_status_line(probe, parser):
     status = probe.record("status", String, EVENT_QOS)
     graphs = probe.record("command_graph", String, LATCHED_LOG_QOS)
     for text, _ in BAD.values():
-        parser.on_command(String(data=text))
+        parser.on_command(cdr(text))
     probe.spin_until(lambda: len(status) == len(BAD), what=f"{len(BAD)} status lines")
     for (name, (_, reason)), line in zip(BAD.items(), status):
         assert line.data.startswith("parser_node: rejected command"), name
@@ -66,3 +76,26 @@ def test_unknown_parser_or_missing_checkpoint_is_a_start_up_error(probe, checkpo
         ParserNode(context=probe.context, parameter_overrides=parameters(checkpoint=str(checkpoint), parser="magic"))
     with pytest.raises(CheckpointError):
         ParserNode(context=probe.context, parameter_overrides=parameters(checkpoint=str(tmp_path / "none.pt")))
+
+
+def test_invalid_utf8_published_on_the_topic_is_rejected(probe, parser):
+    """Through DDS, not just the callback: the subscription must hand over the raw bytes."""
+    status = probe.record("status", String, EVENT_QOS)
+    commands = probe.node.create_publisher(String, "command", EVENT_QOS)
+    probe.publish_when_matched(commands, cdr(b"walk to a \xff circle"))
+    probe.spin_until(lambda: status, what="a rejection")
+    assert "not valid UTF-8 (byte 0xff at position 10)" in status[0].data
+    assert "\\xff" in status[0].data  # the bad byte is shown, not replaced
+
+
+def test_paraphrase_becomes_its_canonical_graph_and_the_mapping_goes_on_status(probe, parser):
+    status = probe.record("status", String, EVENT_QOS)
+    graphs = probe.record("command_graph", String, LATCHED_LOG_QOS)
+    parser.on_command(cdr("Walk to the LARGE circle!"))
+    probe.spin_until(lambda: graphs and status, what="a command graph and a status line")
+    graph = msg_to_graph(graphs[0])
+    assert graph == get_parser("semantic").parse("walk to a big circle") and graph.typed == "Walk to the LARGE circle!"
+    assert status[0].data == (
+        "parser_node: understood 'Walk to the LARGE circle!' as 'walk to a big circle': "
+        "the → a (determiner); large → big (WordNet synonym in large.a.01) (3 nodes)"
+    )

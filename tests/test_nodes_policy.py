@@ -13,7 +13,7 @@ from gscan_ros.nodes.common import EVENT_QOS
 from gscan_ros.nodes.harness import Probe, fresh_domain_id
 from gscan_ros.nodes.policy_node import PolicyNode
 from gscan_ros.world.types import Action
-from msg_adapters import graph_to_msg, msg_to_attention, observation_to_msg
+from msg_adapters import graph_to_msg, msg_to_attention, observation_to_msg, reset_to_msg
 
 from ros_helpers import parameters, source_info
 
@@ -24,6 +24,8 @@ class ScriptedPolicy:
     """Plays `script` (its last action repeats); records resets and the observations it saw."""
 
     parser_name = "semantic"
+    grid_size = 6
+    observation_shape = (6, 6, 16)
 
     def __init__(self, script):
         self.script, self.resets, self.seen, self._t = list(script), [], [], 0
@@ -144,6 +146,16 @@ def test_bad_graphs_are_reported_and_the_node_stays_idle(probe, data):
     probe.spin_until(lambda: any("rejected command graph" in s.data for s in status), what="a rejection")
 
 
+def test_an_observation_of_another_grid_size_is_reported_and_not_acted_on(probe):
+    status = probe.record("status", String, EVENT_QOS)
+    node, policy = start(probe, [Action.WALK])
+    node.on_graph(graph(), source_info())
+    node.on_observation(observation_to_msg(np.zeros((12, 12, 16), dtype=np.uint8)), source_info())
+    assert policy.seen == []
+    probe.spin_until(lambda: any("12x12 grid; the checkpoint was trained on 6x6" in s.data for s in status),
+                     what="a rejection")
+
+
 def test_a_graph_of_another_parser_is_rejected(probe):
     status = probe.record("status", String, EVENT_QOS)
     node, policy = start(probe, [Action.WALK])
@@ -166,3 +178,76 @@ def test_attention_maps_are_published_per_word(probe):
     assert (red[0].height, red[0].width, red[0].encoding) == (24, 24, "mono8")
     np.testing.assert_allclose(msg_to_attention(red[0]), np.eye(6))
     np.testing.assert_allclose(msg_to_attention(spinning[0]), np.eye(6)[::-1])
+
+
+def world_reset(t_ns=None):
+    return reset_to_msg(time.time_ns() if t_ns is None else t_ns)
+
+
+def test_a_world_reset_aborts_the_running_episode(probe):
+    actions = probe.record("action", String, EVENT_QOS)
+    status = probe.record("status", String, EVENT_QOS)
+    node, policy = start(probe, [Action.WALK])
+    node.on_graph(graph(), source_info())
+    node.on_observation(observation(0), source_info())  # -> walk
+    node.on_world_reset(world_reset(), source_info())
+    node.on_observation(observation(1), source_info())  # the new world's first state
+    assert len(policy.seen) == 1  # no action for the old command in the new world
+    probe.spin_until(lambda: any("aborted 'walk to a red circle while spinning' after 1 actions: the world was reset"
+                                 in s.data for s in status), what="the abort notice")
+    node.on_graph(graph("push a big square"), source_info())  # a new command starts in the new world
+    assert len(policy.seen) == 2 and policy.seen[1][1, 0, 11] == 1
+    probe.spin_until(lambda: len(actions) == 2, what="two walks")
+    assert "<eos>" not in [a.data for a in actions]  # aborted, not ended
+
+
+def test_state_and_commands_from_before_a_reset_are_ignored(probe):
+    node, policy = start(probe, [Action.WALK])
+    before_reset = time.time_ns()
+    node.on_world_reset(world_reset(), source_info())
+    node.on_observation(observation(0), source_info(t_ns=before_reset))  # the old world's, delivered late
+    node.on_graph(graph("push a big square"), source_info(t_ns=before_reset))  # a command for the old world
+    assert policy.resets == []
+    node.on_graph(graph(), source_info())
+    assert policy.seen == []  # waits for the new world's state
+    node.on_observation(observation(1), source_info())
+    assert len(policy.seen) == 1
+
+
+def test_a_graph_with_a_huge_arity_is_reported_and_the_node_keeps_following_commands(probe):
+    """The 308-byte message that took the policy from 0.33 to 2.3 GB."""
+    import json
+
+    status = probe.record("status", String, EVENT_QOS)
+    node, policy = start(probe, [Action.WALK])
+    bad = json.loads(graph().data)
+    bad["nodes"][-1]["arity"] = 50_000_000
+    node.on_graph(String(data=json.dumps(bad)), source_info())
+    probe.spin_until(lambda: any("rejected command graph" in s.data and "arity is 50000000" in s.data
+                                 for s in status), what="the rejection")
+    node.on_observation(observation(), source_info())
+    node.on_graph(graph(), source_info())
+    assert len(policy.seen) == 1
+
+
+def test_size_ordering_is_published_for_a_size_word(probe):
+    """(-att_small + att_big) / 2 from the word's map and its antonym head's map, shifted to
+    start at 0: darkest at the small object, lightest at the big one."""
+    class SizePolicy(ScriptedPolicy):
+        def step(self, observation):
+            small, big = np.zeros((6, 6), np.float32), np.zeros((6, 6), np.float32)
+            small[0, 0], big[5, 5] = 1.0, 1.0
+            return StepOutput(super().step(observation).action, {"small": small}, {"small": big})
+
+    ordering = probe.record("attention/size_ordering", Image, EVENT_QOS)
+    node = PolicyNode(SizePolicy([Action.WALK]), context=probe.context, parameter_overrides=parameters())
+    probe.executor.add_node(node)
+    node.on_graph(graph("walk to a small circle"), source_info())
+    deadline = time.monotonic() + 30
+    while not ordering:  # the publisher appears with the first step: allow discovery
+        assert time.monotonic() < deadline, "no size-ordering map"
+        node.on_observation(observation(), source_info())
+        probe.executor.spin_once(timeout_sec=0.05)
+    expected = np.full((6, 6), 0.5)
+    expected[0, 0], expected[5, 5] = 0.0, 1.0
+    np.testing.assert_allclose(msg_to_attention(ordering[0]), expected, atol=1 / 255)

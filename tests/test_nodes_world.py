@@ -1,7 +1,9 @@
 """world_simulator_node in-process: lock-step replies, rejected and stale actions, reset_world."""
+import json
+
 import numpy as np
 import pytest
-from std_msgs.msg import String, UInt8MultiArray
+from std_msgs.msg import Header, String, UInt8MultiArray
 from std_srvs.srv import Trigger
 
 from gscan_ros.data.bag import write_bag
@@ -12,7 +14,7 @@ from gscan_ros.nodes.harness import Probe, fresh_domain_id
 from gscan_ros.nodes.world_simulator_node import WorldSimulatorNode
 from gscan_ros.world import World
 from gscan_ros.world.types import Action
-from msg_adapters import msg_to_observation
+from msg_adapters import msg_to_observation, msg_to_reset
 
 from ros_helpers import parameters, source_info
 
@@ -121,3 +123,66 @@ def test_dataset_split_is_served_in_order_and_wraps_around(probe, tmp_path):
 def test_missing_dataset_is_a_start_up_error(probe):
     with pytest.raises(DatasetFormatError):
         WorldSimulatorNode(context=probe.context, parameter_overrides=parameters(dataset="/no/such/dataset.txt"))
+
+
+def dataset_with_a_bad_second_example(tmp_path, **bad):
+    """dataset.txt whose 'test' split has a good example, then one with `bad` situation fields."""
+    from gscan_ros.data.dataset import DatasetHeader, Example, example_line, write_dataset_json
+    from gscan_ros.language import tokenize
+
+    episode = sample_episode(0)
+    example = Example(tokenize(episode.command), episode.situation, episode.actions)
+    line = example_line(example)
+    broken = example.to_json()
+    broken["situation"].update(bad)
+    return write_dataset_json(tmp_path / "dataset.txt", DatasetHeader(),
+                              {"test": [line, json.dumps(broken)]})
+
+
+def call_reset(probe):
+    client = probe.node.create_client(Trigger, "reset_world")
+    probe.spin_until(client.service_is_ready, what="reset_world")
+    future = client.call_async(Trigger.Request())
+    probe.spin_until(future.done, what="the reset response")
+    return future.result()
+
+
+def test_reset_to_an_unsupported_grid_size_fails_cleanly_and_the_node_keeps_serving(probe, tmp_path):
+    observations = probe.record("observation", UInt8MultiArray, LATCHED_LOG_QOS)
+    status = probe.record("status", String, EVENT_QOS)
+    dataset = dataset_with_a_bad_second_example(tmp_path, grid_size=100_000)
+    node = WorldSimulatorNode(context=probe.context,
+                              parameter_overrides=parameters(dataset=str(dataset), publish_images=False))
+    probe.executor.add_node(node)
+    before = node.world.encode()
+    result = call_reset(probe)
+    assert not result.success
+    assert "reset failed, world unchanged" in result.message and "grid_size': 100000 is not supported" in result.message
+    np.testing.assert_array_equal(node.world.encode(), before)
+    probe.spin_until(lambda: any("100000 is not supported" in s.data for s in status), what="the failure on status")
+    node.on_action(String(data="turn left"), source_info())  # still serving
+    probe.spin_until(lambda: len(observations) == 2, what="the reply to an action after the failed reset")
+
+
+def test_any_exception_in_reset_world_is_a_failed_response_not_a_dead_node(probe, world):
+    node, observations, status = world
+
+    def exhausted():
+        raise MemoryError("no room for the next situation")
+
+    node._source.next = exhausted
+    result = call_reset(probe)
+    assert not result.success and "MemoryError: no room for the next situation" in result.message
+    probe.spin_until(lambda: any("internal error in on_reset_world" in s.data for s in status), what="a status line")
+    node.on_action(String(data="stay"), source_info())
+    probe.spin_until(lambda: len(observations) == 2, what="a reply after the failed reset")
+
+
+def test_each_load_publishes_its_reset_time_before_the_new_state(probe, world):
+    node, observations, _ = world
+    resets = probe.record("world_reset", Header, LATCHED_LOG_QOS)
+    probe.spin_until(lambda: resets, what="the latched start-up reset")
+    first = msg_to_reset(resets[0])
+    assert call_reset(probe).success
+    probe.spin_until(lambda: len(resets) == 2 and len(observations) == 2, what="the reset and the new state")
+    assert first < msg_to_reset(resets[1]) == node._reset_ns

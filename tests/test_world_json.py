@@ -145,6 +145,8 @@ def _set(d, path, value):
         (("agent_direction",), "0", r"situation\.agent_direction: expected an integer 0-3"),
         (("agent_direction",), 4, r"situation\.agent_direction: expected an integer 0-3"),
         (("grid_size",), "6", r"situation\.grid_size: expected a positive integer"),
+        (("grid_size",), 100_000, r"situation\.grid_size: 100000 is not supported \(supported: 4 to 16\)"),
+        (("grid_size",), 3, r"situation\.grid_size: 3 is not supported"),
         (("distance_to_target",), 2, r"situation\.distance_to_target: expected an integer string"),
         (("distance_to_target",), "3", r"situation\.distance_to_target: 3 disagrees"),
         (("direction_to_target",), "up", r"situation\.direction_to_target: expected one of"),
@@ -191,3 +193,12 @@ def test_snapshot_round_trips_mid_episode():
     snap = world.snapshot()
     assert snap.target_object.position == Position(3, 2) == snap.agent_position
     assert Situation.from_json(snap.to_json()) == snap
+
+
+def test_unsupported_grid_size_is_one_error_before_any_allocation():
+    """A grid_size from a bad file must not reach World (which allocates grid_size^2 cells)."""
+    from gscan_ros.world.types import SUPPORTED_GRID_SIZES
+
+    assert list(SUPPORTED_GRID_SIZES) == list(range(4, 17))  # 6 (compositional) and 12 (split I) inside
+    with pytest.raises(SituationError, match=r"situation\.grid_size: 100000 is not supported \(supported: 4 to 16\)"):
+        Situation(Position(0, 0), Heading.EAST, (), grid_size=100_000)

@@ -3,7 +3,8 @@
 A subcommand module defines `register(subparsers)` (adds its parser and sets
 `func=run`) and `run(args) -> int`. Modules import heavy libraries (torch, rclpy)
 inside `run`, so `gscan-ros --help` stays fast. Any `GscanError` becomes one line on
-stderr and exit status 1; bad usage exits 2 (argparse).
+stderr and exit status 1; so does a bad argument (`cli.args`: the parser class and the
+validators every subcommand uses for its numbers and paths).
 """
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ import importlib
 import sys
 
 from gscan_ros import __version__
+from gscan_ros.cli.args import ArgumentParser
 from gscan_ros.errors import GscanError
 
 # Subcommand modules, in help order. A module missing here is simply not offered.
@@ -22,14 +24,18 @@ SUBCOMMANDS = (
     "parse",
     "train",
     "evaluate",
+    "experiment",
+    "report",
+    "explain",
     "replay",
+    "bag",
     "demo",
     "bringup",
 )
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = ArgumentParser(
         prog="gscan-ros",
         description="gSCAN grounded command following with compositional networks (Kuo et al. 2021).",
     )

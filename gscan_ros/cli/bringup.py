@@ -11,6 +11,9 @@ import threading
 from dataclasses import dataclass
 from pathlib import Path
 
+from gscan_ros.cli.args import int_in, nonnegative_int, positive_int
+from gscan_ros.world.types import GRID_SIZE, SUPPORTED_GRID_SIZES
+
 DEFAULT_MAX_STEPS = 120
 
 
@@ -21,9 +24,12 @@ def add_stack_arguments(parser: argparse.ArgumentParser) -> None:
     source = parser.add_argument_group("situations (a dataset split, else random sampling)")
     source.add_argument("--dataset", type=Path, default=None, help="dataset.txt, its directory, or a bag")
     source.add_argument("--split", default="test", help="dataset split (default: test)")
-    source.add_argument("--index", type=int, default=0, help="first example of the split (default: 0)")
-    source.add_argument("--seed", type=int, default=0, help="first sampling seed without --dataset (default: 0)")
-    parser.add_argument("--max-steps", type=int, default=DEFAULT_MAX_STEPS, help="action cap per episode")
+    source.add_argument("--index", type=nonnegative_int, default=0, help="first example of the split (default: 0)")
+    source.add_argument("--seed", type=nonnegative_int, default=0,
+                        help="first sampling seed without --dataset (default: 0)")
+    source.add_argument("--grid-size", type=int_in(SUPPORTED_GRID_SIZES[0], SUPPORTED_GRID_SIZES[-1]),
+                        default=GRID_SIZE, help=f"grid side of sampled worlds without --dataset (default: {GRID_SIZE})")
+    parser.add_argument("--max-steps", type=positive_int, default=DEFAULT_MAX_STEPS, help="action cap per episode")
 
 
 def register(subparsers) -> None:
@@ -33,7 +39,10 @@ def register(subparsers) -> None:
         description=__doc__.splitlines()[0],
     )
     add_stack_arguments(p)
-    p.add_argument("--record", type=Path, default=None, metavar="BAG_DIR", help="also record episodes to this bag")
+    p.add_argument("--record", type=Path, default=None, metavar="BAG_DIR",
+                   help="also record episodes to this bag (a new directory, or an empty one)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="with --record: replace a bag already at BAG_DIR (only the bag's own files)")
     p.set_defaults(func=run)
 
 
@@ -45,9 +54,11 @@ class StackOptions:
     split: str = "test"
     index: int = 0
     seed: int = 0
+    grid_size: int = GRID_SIZE
     max_steps: int = DEFAULT_MAX_STEPS
     record: Path | None = None
     record_images: bool = False
+    overwrite: bool = False
 
     @classmethod
     def from_args(cls, args: argparse.Namespace, **overrides) -> "StackOptions":
@@ -94,6 +105,7 @@ class Stack:
         nodes = [
             WorldSimulatorNode(parameter_overrides=_params(
                 dataset=str(o.dataset) if o.dataset else "", split=o.split, index=o.index, seed=o.seed,
+                grid_size=o.grid_size,
             )),
             ParserNode(parameter_overrides=_params(checkpoint=checkpoint, parser=o.parser)),
             PolicyNode(Policy.from_checkpoint(o.checkpoint), parameter_overrides=_params(max_steps=o.max_steps)),
@@ -103,7 +115,7 @@ class Stack:
             from gscan_ros.nodes.episode_recorder_node import EpisodeRecorderNode
 
             nodes.append(EpisodeRecorderNode(parameter_overrides=_params(
-                bag_dir=str(o.record), include_images=o.record_images, overwrite=True,
+                bag_dir=str(o.record), include_images=o.record_images, overwrite=o.overwrite,
             )))
         return nodes
 

@@ -16,10 +16,12 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from gscan_ros.cli.args import float_in, positive_int
 from gscan_ros.cli.bringup import Stack, StackOptions, add_stack_arguments
 from gscan_ros.errors import GscanError
 
-DEFAULT_OUT = Path("out/demo")
+DEFAULT_OUT_ROOT = Path("out/demo")
+MAX_TIMEOUT_S = 86_400.0  # threading waits overflow on huge timeouts
 
 
 def register(subparsers) -> None:
@@ -28,9 +30,13 @@ def register(subparsers) -> None:
     add_stack_arguments(p)
     p.add_argument("--command", dest="command_text", default=None,
                    help="command to send (default: the situation's generated one)")
-    p.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"output directory (default: {DEFAULT_OUT})")
-    p.add_argument("--episodes", type=int, default=3, help="episodes to run, each after a reset_world (default: 3)")
-    p.add_argument("--timeout", type=float, default=120.0, help="seconds to wait for each episode")
+    p.add_argument("--out", type=Path, default=None,
+                   help=f"output directory, new or empty (default: a new {DEFAULT_OUT_ROOT}/<date>_<time>)")
+    p.add_argument("--overwrite", action="store_true", help="replace the bag and GIFs of an earlier demo in --out")
+    p.add_argument("--episodes", type=positive_int, default=3,
+                   help="episodes to run, each after a reset_world (default: 3)")
+    p.add_argument("--timeout", type=float_in(0, MAX_TIMEOUT_S, low_open=True), default=120.0,
+                   help="seconds to wait for each episode (default: 120)")
     p.set_defaults(func=run)
 
 
@@ -110,13 +116,15 @@ def run(args: argparse.Namespace) -> int:
     from gscan_ros.nodes.episode_recorder_node import EpisodeRecorderNode
     from gscan_ros.nodes.policy_node import PolicyNode
 
-    if args.episodes < 1:
-        raise GscanError(f"--episodes must be at least 1, got {args.episodes}")
-    out = args.out
+    out = args.out or DEFAULT_OUT_ROOT / time.strftime("%Y%m%d_%H%M%S")
+    if out.exists() and not out.is_dir():
+        raise GscanError(f"--out {out} is a file, not a directory")
+    if out.exists() and any(out.iterdir()) and not args.overwrite:
+        raise GscanError(f"--out {out} is not empty; pass --overwrite to replace an earlier demo there")
     out.mkdir(parents=True, exist_ok=True)
     options = StackOptions.from_args(args, record=out / "bag", record_images=True)
     dataset = str(args.dataset) if args.dataset else ""
-    source = episode_source(dataset, args.split, args.index, args.seed)  # the world node's sequence
+    source = episode_source(dataset, args.split, args.index, args.seed, args.grid_size)  # the world node's sequence
     episodes = [source.next() for _ in range(args.episodes)]
 
     matched = 0
@@ -133,7 +141,7 @@ def run(args: argparse.Namespace) -> int:
             if i > 1:
                 operator.reset_world(args.timeout)
             result = operator.start_episode()
-            operator.command_pub.publish(String(data=graph.command))
+            operator.command_pub.publish(String(data=graph.typed or graph.command))  # as typed: parser_node maps it
             if not operator.done.wait(args.timeout):
                 raise GscanError(f"no <eos> within {args.timeout:.0f} s; status: {result.status[-3:]}")
             _wait(lambda: operator.recorded >= i, f"the recorder to store episode {i}", args.timeout)
@@ -166,6 +174,12 @@ def _report(graph, episode, result: EpisodeResult, gif_path: Path) -> bool:
         gold = [a.token for a in demonstrate(episode.situation, graph.command)]
     except GscanError as exc:
         gold, why = None, str(exc)
+    if graph.typed is not None:
+        from gscan_ros.language import canonicalize
+
+        print(f"typed:    {graph.typed}")
+        for mapping in canonicalize(graph.typed).mappings:
+            print(f"          {mapping}")
     print(f"command:  {graph.command}")
     print(f"parse ({graph.parser}):")
     print("  " + graph.pretty().replace("\n", "\n  "))
@@ -176,7 +190,8 @@ def _report(graph, episode, result: EpisodeResult, gif_path: Path) -> bool:
         print(f"planner:  {', '.join(gold)}  [{len(gold)} actions]")
         print(f"match:    {'yes, exact match' if moves == gold else 'no'}")
     attention = [
-        {word: msg_to_attention(maps[t]) for word, maps in result.attention.items() if t < len(maps)}
+        {word: msg_to_attention(maps[t], grid_size=episode.situation.grid_size)
+         for word, maps in result.attention.items() if t < len(maps)}
         for t in range(len(actions))
     ]
     gif = save_gif(render_frames(episode.situation, actions, attention=attention), gif_path)

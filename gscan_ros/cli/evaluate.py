@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import argparse
 
+from gscan_ros.cli.args import existing_file, existing_path, nonnegative_int, output_dir, positive_int
+
 EVAL_SPLITS = ("test", "visual_easier", "visual", "situational_1", "situational_2", "contextual",
                "adverb_1", "adverb_2", "target_lengths")
 
@@ -17,17 +19,21 @@ def register(subparsers) -> None:
         "E situational_2, F contextual, G adverb_1, H adverb_2, I target_lengths. For G at k = 5/10/50, "
         "train models on data made with `gscan-ros generate --k-shot K` and evaluate each.",
     )
-    p.add_argument("--checkpoint", metavar="CKPT", help="checkpoint file (default: the shipped model)")
-    p.add_argument("--data", required=True, metavar="DIR", help="dataset directory/file (dataset.txt or bags)")
+    p.add_argument("--checkpoint", type=existing_file, metavar="CKPT",
+                   help="checkpoint file (default: the shipped model)")
+    p.add_argument("--data", required=True, type=existing_path, metavar="DIR",
+                   help="dataset directory/file (dataset.txt or bags)")
     p.add_argument("--splits", nargs="+", metavar="SPLIT", help="splits to evaluate (default: every test split present)")
-    p.add_argument("--max-examples", type=int, default=0, metavar="N", help="seeded subset of N episodes per split (0 = all)")
-    p.add_argument("--out", default="runs/eval", metavar="DIR", help="output directory (default: runs/eval)")
-    p.add_argument("--batch-size", type=int, default=1024, help="episodes decoded together (default: 1024)")
+    p.add_argument("--max-examples", type=nonnegative_int, default=0, metavar="N",
+                   help="seeded subset of N episodes per split (0 = all)")
+    p.add_argument("--out", type=output_dir, default="runs/eval", metavar="DIR",
+                   help="output directory (default: runs/eval)")
+    p.add_argument("--batch-size", type=positive_int, default=1024, help="episodes decoded together (default: 1024)")
     p.add_argument("--no-predictions", action="store_true", help="skip predictions.json")
     p.add_argument("--attention", action="store_true",
                    help="store every word's attention map per step in predictions.json (large: ~85 kB per episode)")
-    p.add_argument("--threads", type=int, default=0, help="torch threads (0 = torch default)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the --max-examples subset")
+    p.add_argument("--threads", type=nonnegative_int, default=0, help="torch threads (0 = torch default)")
+    p.add_argument("--seed", type=nonnegative_int, default=0, help="seed of the --max-examples subset")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -49,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
     for ep in _episodes(args.data, args.splits):
         by_split.setdefault(ep.split, []).append(ep)
     if not by_split:
-        raise DatasetFormatError(f"{args.data!r} has none of the splits {list(args.splits or EVAL_SPLITS)}")
+        raise DatasetFormatError(f"{str(args.data)!r} has none of the splits {list(args.splits or EVAL_SPLITS)}")
     episodes = []
     for split, eps in by_split.items():
         if args.max_examples and len(eps) > args.max_examples:

@@ -10,9 +10,12 @@ def register(subparsers) -> None:
     p = subparsers.add_parser(
         "parse",
         help="parse a command into a CommandGraph",
-        description="Parse a gSCAN command and print its graph as an indented tree (or JSON).",
+        description="Parse a command and print its graph as an indented tree (or JSON). A paraphrase "
+        "(determiners, WordNet synonyms, adjective order) is first rewritten into the gSCAN command "
+        "it means, and the rewrites are printed.",
     )
-    p.add_argument("words", nargs="+", metavar="COMMAND", help='e.g. "walk to a red small circle cautiously"')
+    p.add_argument("words", nargs="+", metavar="COMMAND",
+                   help='e.g. "walk to a red small circle cautiously" or "Walk to the big red circle"')
     p.add_argument("--parser", default="semantic", help=f"{' | '.join(BUILTIN_PARSERS)} (default: semantic)")
     p.add_argument("--all", action="store_true", help="print the parse of every built-in parser")
     p.add_argument("--json", action="store_true", help="print the graph JSON (one line per parser)")
@@ -26,11 +29,18 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from gscan_ros.language import Lexicon, get_parser
+    from gscan_ros.language import Lexicon, canonicalize, get_parser
 
     lexicon = Lexicon.from_wordnet() if args.lexicon == "wordnet" else Lexicon.none()
     names = BUILTIN_PARSERS if args.all else (args.parser,)
-    graphs = [get_parser(name, lexicon).parse(" ".join(args.words)) for name in names]
+    text = " ".join(args.words)
+    graphs = [get_parser(name, lexicon).parse(text) for name in names]
+    canonical = canonicalize(text)
+    if canonical.mappings and not args.json:
+        print(f"understood: {canonical.canonical}")
+        for mapping in canonical.mappings:
+            print(f"  {mapping}")
+        print()
     for i, graph in enumerate(graphs):
         if args.json:
             print(graph.to_json())

@@ -3,6 +3,10 @@ from __future__ import annotations
 
 import argparse
 
+from gscan_ros.cli.args import existing_path, float_in, int_in, nonnegative_int, output_file, refuse_existing
+
+MAX_FPS = 50  # save_gif's shortest frame is 20 ms
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -11,31 +15,30 @@ def register(subparsers) -> None:
         description="Render an example of a dataset: .png shows the initial state, .gif plays its "
                     "target actions.",
     )
-    p.add_argument("dataset", metavar="DATASET", help="dataset.txt, a directory holding it, or a bag directory")
+    p.add_argument("dataset", type=existing_path, metavar="DATASET",
+                   help="dataset.txt, a directory holding it, or a bag directory")
     p.add_argument("--split", default="train", help="split name (default: train)")
-    p.add_argument("--index", type=int, default=0, help="example index within the split (default: 0)")
-    p.add_argument("--out", required=True, metavar="FILE", help="output .png or .gif")
-    p.add_argument("--fps", type=float, default=4.0, help="GIF frames per second (default: 4)")
-    p.add_argument("--cell-px", type=int, default=40, help="pixels per grid cell (default: 40)")
+    p.add_argument("--index", type=nonnegative_int, default=0, help="example index within the split (default: 0)")
+    p.add_argument("--out", required=True, type=output_file(".png", ".gif"), metavar="FILE",
+                   help="output .png or .gif, in an existing folder")
+    p.add_argument("--overwrite", action="store_true", help="replace FILE if it exists")
+    p.add_argument("--fps", type=float_in(0, MAX_FPS, low_open=True), default=4.0,
+                   help=f"GIF frames per second, at most {MAX_FPS} (default: 4)")
+    p.add_argument("--cell-px", type=int_in(8, 400), default=40, help="pixels per grid cell, 8-400 (default: 40)")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
     from gscan_ros.data.io import iter_episodes
     from gscan_ros.errors import GscanError
     from gscan_ros.world.render import render_frames, save_gif, save_png
 
-    suffix = Path(args.out).suffix.lower()
-    if suffix not in (".png", ".gif"):
-        raise GscanError(f"--out must end in .png or .gif, got {args.out!r}")
-    if args.index < 0:
-        raise GscanError(f"--index must be >= 0, got {args.index}")
+    refuse_existing(args.out, args.overwrite)
     episode = next((e for i, e in enumerate(iter_episodes(args.dataset, [args.split])) if i == args.index), None)
     if episode is None:
         raise GscanError(f"split {args.split!r} has no example {args.index}")
     frames = render_frames(episode.situation, episode.actions, cell_px=args.cell_px)
-    path = save_gif(frames, args.out, fps=args.fps) if suffix == ".gif" else save_png(frames[0], args.out)
+    is_gif = args.out.suffix.lower() == ".gif"
+    path = save_gif(frames, args.out, fps=args.fps) if is_gif else save_png(frames[0], args.out)
     print(f"wrote {path}: {episode.command!r}, {len(episode.actions)} actions")
     return 0

@@ -10,14 +10,8 @@ import argparse
 import itertools
 from pathlib import Path
 
+from gscan_ros.cli.args import existing_file, positive_int
 from gscan_ros.errors import DatasetFormatError
-
-
-def _positive(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text}")
-    return value
 
 
 def register(subparsers) -> None:
@@ -27,10 +21,11 @@ def register(subparsers) -> None:
         description=__doc__.split("\n\n")[1],
     )
     parser.add_argument("bag", type=Path, help="rosbag2 directory (metadata.yaml + MCAP)")
-    parser.add_argument("--checkpoint", type=Path, default=None, help="model checkpoint (default: the shipped model)")
-    parser.add_argument("--max-episodes", type=_positive, default=None, help="replay only the first N episodes")
+    parser.add_argument("--checkpoint", type=existing_file, default=None,
+                        help="model checkpoint (default: the shipped model)")
+    parser.add_argument("--max-episodes", type=positive_int, default=None, help="replay only the first N episodes")
     parser.add_argument("--splits", nargs="+", default=None, metavar="SPLIT", help="only episodes of these splits")
-    parser.add_argument("--batch-size", type=_positive, default=64, help="episodes decoded together")
+    parser.add_argument("--batch-size", type=positive_int, default=64, help="episodes decoded together")
     parser.set_defaults(func=run)
 
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 import argparse
 import json
 
+from gscan_ros.cli.args import existing_file, existing_path, output_dir
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -12,12 +14,18 @@ def register(subparsers) -> None:
         description="Teacher-forced training with periodic closed-loop validation. Settings come from "
         "a YAML config (fields of TrainConfig, model settings under 'model:') and --set overrides.",
     )
-    p.add_argument("--config", metavar="FILE", help="YAML training config (default: built-in defaults)")
-    p.add_argument("--data", required=True, metavar="DIR", help="dataset directory/file (dataset.txt or bags)")
-    p.add_argument("--out", default="runs/train", metavar="RUN_DIR", help="run directory (default: runs/train)")
+    p.add_argument("--config", type=existing_file, metavar="FILE",
+                   help="YAML training config (default: built-in defaults)")
+    p.add_argument("--data", required=True, type=existing_path, metavar="DIR",
+                   help="dataset directory/file (dataset.txt or bags)")
+    p.add_argument("--out", type=output_dir, default="runs/train", metavar="RUN_DIR",
+                   help="run directory (default: runs/train)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config key, e.g. --set batch_size=100 --set model.rnn_dim=40")
-    p.add_argument("--resume", action="store_true", help="continue from RUN_DIR/last.pt")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--resume", action="store_true", help="continue from RUN_DIR/last.pt")
+    mode.add_argument("--overwrite", action="store_true",
+                      help="replace the run files already in RUN_DIR (refused without this flag)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
 
@@ -27,6 +35,7 @@ def run(args: argparse.Namespace) -> int:
     from gscan_ros.training.trainer import train
 
     cfg = TrainConfig.load(args.config, args.overrides)
-    result = train(cfg, args.data, args.out, resume=args.resume, progress=not args.quiet)
+    result = train(cfg, str(args.data), args.out, resume=args.resume, overwrite=args.overwrite,
+                   progress=not args.quiet)
     print(json.dumps(result, indent=2))
     return 0

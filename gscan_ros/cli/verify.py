@@ -1,11 +1,15 @@
 """`gscan-ros verify`: replay every example's target actions and re-plan it.
 
 An example passes when its `target_commands` execute in the World without error and
-equal what `gscan_ros.world.demonstrate` plans for its command and situation.
+equal what `gscan_ros.world.demonstrate` plans for its command and situation. A bag
+that lost data (truncated or corrupt MCAP, episodes dropped) fails verification too,
+with one line per bag saying what was lost, unless `--allow-partial` accepts it.
 """
 from __future__ import annotations
 
 import argparse
+
+from gscan_ros.cli.args import existing_path, nonnegative_int, positive_int
 
 
 def register(subparsers) -> None:
@@ -13,12 +17,16 @@ def register(subparsers) -> None:
         "verify",
         help="check a dataset's target actions against the world and the planner",
         description="Stream a dataset.txt (or a bag directory), replay each example's actions in the "
-                    "World and compare them with the planner. Exit status 1 on any mismatch.",
+                    "World and compare them with the planner. Exit status 1 on any mismatch, and on a "
+                    "bag that lost data (truncated, corrupt, episodes dropped) unless --allow-partial.",
     )
-    p.add_argument("dataset", metavar="DATASET", help="dataset.txt, a directory holding it, or a bag directory")
+    p.add_argument("dataset", type=existing_path, metavar="DATASET",
+                   help="dataset.txt, a directory holding it, or a bag directory")
     p.add_argument("--splits", help="comma-separated splits to check (default: all)")
-    p.add_argument("--limit", type=int, metavar="N", help="check at most N examples")
-    p.add_argument("--show", type=int, default=5, metavar="K", help="mismatches to print in full (default: 5)")
+    p.add_argument("--limit", type=positive_int, metavar="N", help="check at most N examples")
+    p.add_argument("--show", type=nonnegative_int, default=5, metavar="K", help="mismatches to print in full (default: 5)")
+    p.add_argument("--allow-partial", action="store_true",
+                   help="accept a bag that lost data (the loss is still printed; exit 0 unless a mismatch)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -56,13 +64,18 @@ def check_episode(episode) -> str | None:
 
 def run(args: argparse.Namespace) -> int:
     import itertools
+    import sys
 
     from tqdm import tqdm
 
-    from gscan_ros.data.io import iter_episodes
-
     splits = args.splits.split(",") if args.splits else None
-    episodes = iter_episodes(args.dataset, splits)
+    readers = _bag_readers(args.dataset, splits)
+    if readers is None:
+        from gscan_ros.data.io import iter_episodes
+
+        episodes = iter_episodes(args.dataset, splits)
+    else:
+        episodes = itertools.chain.from_iterable(readers)
     first = next(episodes, None)  # opens the file: a bad path fails before the progress bar
     episodes = itertools.chain([first] if first is not None else [], episodes)
     if args.limit is not None:
@@ -78,4 +91,38 @@ def run(args: argparse.Namespace) -> int:
             tqdm.write(f"MISMATCH example {episode.example_id} of split {episode.split!r}: "
                        f"{episode.command!r}: {reason}")
     print(f"verified {checked} examples: {mismatches} mismatch(es)")
-    return 1 if mismatches else 0
+    losses = [_loss(reader) for reader in readers or []]
+    losses = [line for line in losses if line]
+    for line in losses:
+        if args.allow_partial:
+            print(f"warning: lost data (accepted by --allow-partial): {line}", file=sys.stderr)
+        else:
+            print(f"gscan-ros verify: error: lost data: {line} (pass --allow-partial to accept it; "
+                  f"`gscan-ros bag repair` rewrites what is left as a complete bag)", file=sys.stderr)
+    return 1 if mismatches or (losses and not args.allow_partial) else 0
+
+
+def _bag_readers(dataset, splits):
+    """The readers of a bag or a directory of per-split bags (None for dataset.txt data)."""
+    from gscan_ros.data.bag import iter_bag_episodes
+    from gscan_ros.data.io import is_bag, split_bags
+
+    if is_bag(dataset):
+        return [iter_bag_episodes(dataset, splits, log_losses=False)]
+    bags = split_bags(dataset)
+    if not bags:
+        return None
+    return [iter_bag_episodes(bag, splits, log_losses=False)
+            for split, bag in bags.items() if splits is None or split in splits]
+
+
+def _loss(reader) -> str | None:
+    """One line on what a bag lost, or None. A reader that --limit stopped early is judged
+    on what it read: damage seen so far and episodes cut by it."""
+    report = reader.report
+    if report.finished:
+        return None if report.complete else report.summary()
+    if report.damaged or report.incomplete_episodes:
+        return (f"{report.bag_dir}: {report.state()} in the part read before --limit stopped: "
+                f"{report.incomplete_episodes} episode(s) cut, {len(report.corrupt_regions)} damaged region(s)")
+    return None

@@ -4,7 +4,10 @@ Decoding a bag (CDR + JSON + situations) runs at MCAP-reader speed; training rea
 the same bag many times. The first `load_episode_cache` decodes the bag and stores
 plain arrays in `<bag_dir>/.cache/episodes.npz` (no pickles); later calls load them
 as long as the key (format version, each MCAP file's size and mtime, a hash of
-metadata.yaml) still matches.
+metadata.yaml) still matches. A cache file that cannot be read (empty, torn, not an
+npz, inconsistent arrays) is rebuilt with a warning. The cache records what the
+decode lost: a cache built from a damaged bag (truncated, corrupt, episodes lost)
+warns each time it is loaded, so the loss is not hidden by later fast loads.
 
 Teacher-forced training needs commands, actions and observations, not Situations,
 and parsing a Situation is the slowest step of a load, so situations stay JSON text
@@ -23,15 +26,14 @@ from typing import Iterable
 import numpy as np
 
 from gscan_ros.data.bag import BagEpisodeReader, GraphCache, episode_from_header
-from gscan_ros.data.bag_metadata import METADATA_FILE, read_bag_info
+from gscan_ros.data.bag_metadata import CACHE_DIR, METADATA_FILE, read_bag_info
 from gscan_ros.data.episode import Episode
 from gscan_ros.errors import DatasetFormatError
 from gscan_ros.world.types import Action
 
 log = logging.getLogger(__name__)
 
-CACHE_VERSION = 2
-CACHE_DIR = ".cache"
+CACHE_VERSION = 3
 CACHE_FILE = "episodes.npz"
 _ACTIONS = tuple(Action)
 
@@ -48,6 +50,9 @@ class EpisodeCache:
         self._arrays = arrays
         self._rows = rows
         self._where = where
+        self.source: dict = json.loads(arrays["source"].tobytes())
+        """What decoding the bag recovered and lost: `complete`, `state`, `episodes_read`,
+        `lost_episodes`, `lost_messages`, `exact`, `summary` (a BagReadReport's)."""
         headers = json.loads(arrays["headers"].tobytes())
         self.headers: list[dict] = [headers[r] for r in rows]
         graphs = json.loads(arrays["graphs"].tobytes())
@@ -57,6 +62,16 @@ class EpisodeCache:
 
     def __len__(self) -> int:
         return len(self._rows)
+
+    @property
+    def complete(self) -> bool:
+        """The bag was read without damage or loss when this cache was built."""
+        return bool(self.source["complete"])
+
+    @property
+    def lost_episodes(self) -> int:
+        """Episodes of the bag that the cache lacks (a lower bound unless `source['exact']`)."""
+        return int(self.source["lost_episodes"])
 
     @property
     def commands(self) -> list[str]:
@@ -128,7 +143,10 @@ def load_episode_cache(
     """Episodes and observations of a bag, decoded once and cached next to it.
 
     `splits` selects after loading (the cache always holds the whole bag). A bag whose
-    directory is read-only is decoded without writing the cache (logged).
+    directory is read-only is decoded without writing the cache (logged). An unreadable
+    cache file is rebuilt (logged). If the bag was damaged or lost episodes when the
+    cache was built, every call logs a warning saying how many (`cache.complete`,
+    `cache.lost_episodes`, `cache.source`).
     """
     bag_dir = Path(bag_dir)
     key = _cache_key(bag_dir)
@@ -137,6 +155,14 @@ def load_episode_cache(
     if arrays is None:
         arrays = _decode(bag_dir, key)
         _save(path, arrays)
+    source = json.loads(arrays["source"].tobytes())
+    if not source["complete"]:
+        bound = "" if source["exact"] else "at least "
+        log.warning(
+            "%s: episode cache built from a damaged bag: %s%d episodes lost (%s); "
+            "`gscan-ros bag repair` writes what is left as a complete bag",
+            bag_dir, bound, source["lost_episodes"], source["summary"],
+        )
     count = len(arrays["action_offsets"]) - 1
     rows = np.arange(count)
     if splits is not None:
@@ -154,7 +180,7 @@ def _buffer(texts: list[bytes]) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _decode(bag_dir: Path, key: str) -> dict[str, np.ndarray]:
-    reader = BagEpisodeReader(bag_dir, decode_states=True)
+    reader = BagEpisodeReader(bag_dir, decode_states=True, log_losses=False)  # load_episode_cache warns
     headers, situations, graphs, actions, action_offsets, states = [], [], [], [], [0], []
     for record in reader.records():
         header = dict(record.header)
@@ -168,8 +194,19 @@ def _decode(bag_dir: Path, key: str) -> dict[str, np.ndarray]:
     if all_states.size and all_states.max() > 1:
         raise DatasetFormatError(f"{bag_dir}: observations are not 0/1 one-hot encodings")
     situation_bytes, situation_offsets = _buffer(situations)
+    report = reader.report
+    source = {
+        "complete": report.complete,
+        "state": report.state(),
+        "exact": report.exact,
+        "episodes_read": report.episodes_read,
+        "lost_episodes": report.lost_episodes,
+        "lost_messages": report.lost_messages,
+        "summary": report.summary(),
+    }
     return {
         "key": np.array(key),
+        "source": np.frombuffer(json.dumps(source).encode(), dtype=np.uint8),
         "headers": np.frombuffer(json.dumps(headers).encode(), dtype=np.uint8),
         "situations": situation_bytes,
         "situation_offsets": situation_offsets,
@@ -182,14 +219,51 @@ def _decode(bag_dir: Path, key: str) -> dict[str, np.ndarray]:
     }
 
 
+_ARRAYS = ("key", "source", "headers", "situations", "situation_offsets", "graphs", "actions",
+           "action_offsets", "packed_states", "state_offsets", "channels")
+
+
 def _load(path: Path, key: str) -> dict[str, np.ndarray] | None:
+    """The cached arrays, or None to rebuild: no file, another bag/layout (silently), or a
+    file that cannot be read (logged: empty, torn, not an npz, inconsistent)."""
+    if not path.exists():
+        return None
     try:
         with np.load(path, allow_pickle=False) as data:
-            if str(data["key"]) != key:
+            if "key" not in data.files or str(data["key"]) != key:
+                log.info("bag cache %s is for another version of the bag; rebuilding", path)
                 return None
-            return {name: data[name] for name in data.files}
-    except (OSError, KeyError, ValueError):  # missing, stale layout or torn file: rebuild
+            arrays = {name: data[name] for name in data.files}
+        _check(arrays)
+    except Exception as exc:  # noqa: BLE001 - any unreadable cache is rebuilt, never fatal
+        log.warning("bag cache %s is unreadable (%s: %s); rebuilding it", path, exc.__class__.__name__, exc)
         return None
+    return arrays
+
+
+def _check(arrays: dict[str, np.ndarray]) -> None:
+    """ValueError unless the arrays fit together (a cache written by `_decode`)."""
+    missing = [name for name in _ARRAYS if name not in arrays]
+    if missing:
+        raise ValueError(f"missing arrays {missing}")
+    headers = json.loads(arrays["headers"].tobytes())
+    graphs = json.loads(arrays["graphs"].tobytes())
+    source = json.loads(arrays["source"].tobytes())
+    count = len(headers)
+    if not isinstance(source, dict) or not {"complete", "exact", "lost_episodes", "summary"} <= source.keys():
+        raise ValueError("bad source record")
+    for name, total in (("action_offsets", len(arrays["actions"])), ("state_offsets", len(arrays["packed_states"])),
+                        ("situation_offsets", len(arrays["situations"]))):
+        offsets = arrays[name]
+        if offsets.ndim != 1 or len(offsets) != count + 1 or offsets[0] != 0 or offsets[-1] != total \
+                or np.any(np.diff(offsets) < 0):
+            raise ValueError(f"{name} do not match the data")
+    if len(graphs) != count:
+        raise ValueError("graphs do not match the headers")
+    if np.any(np.diff(arrays["state_offsets"]) != np.diff(arrays["action_offsets"]) + 1):
+        raise ValueError("states do not match the actions")
+    if arrays["actions"].size and int(arrays["actions"].max()) >= len(_ACTIONS):
+        raise ValueError("unknown action codes")
 
 
 def _save(path: Path, arrays: dict[str, np.ndarray]) -> None:

@@ -19,6 +19,7 @@ from gscan_ros.data.bag_schema import TOPICS, VOLATILE_QOS, YamlDumper, type_has
 from gscan_ros.errors import DatasetFormatError
 
 METADATA_FILE = "metadata.yaml"
+CACHE_DIR = ".cache"  # the decode-once episode cache beside a bag (bag_cache.py)
 ROSBAG2_VERSION = 9
 STORAGE_ID = "mcap"
 EPISODE_FORMAT = "gscan_ros/episodes"
@@ -173,3 +174,11 @@ def read_bag_info(bag_dir: str | os.PathLike) -> BagInfo:
             f"{path}: episode format version {fmt} is newer than supported ({EPISODE_FORMAT_VERSION})"
         )
     return bag
+
+
+def bag_owned_files(bag_dir: str | os.PathLike) -> list[Path]:
+    """The files a bag writer owns in `bag_dir` (metadata.yaml, *.mcap, the cache): the
+    only ones an `--overwrite` may replace."""
+    bag_dir = Path(bag_dir)
+    own = (bag_dir / METADATA_FILE, *sorted(bag_dir.glob("*.mcap")), bag_dir / CACHE_DIR)
+    return [p for p in own if p.exists()]

@@ -23,6 +23,7 @@ import hashlib
 import json
 import multiprocessing
 import os
+import shutil
 import tempfile
 import time
 from dataclasses import asdict, dataclass, field, replace
@@ -32,8 +33,10 @@ from typing import Iterator
 import numpy as np
 
 from gscan_ros import __version__
+from gscan_ros.data.bag_metadata import bag_owned_files
 from gscan_ros.data.commands import COMMANDS, Command
 from gscan_ros.data.dataset import DATASET_FILE, DatasetHeader, Example, write_dataset_json
+from gscan_ros.data.io import is_bag
 from gscan_ros.data.sampling import (
     ALL_OBJECTS,
     OTHER_OBJECTS_SAMPLE_PERCENTAGE,
@@ -43,9 +46,11 @@ from gscan_ros.data.sampling import (
     sample_placements,
     sample_situations,
 )
-from gscan_ros.data.splits import SPLIT_NAMES, SplitResult, assign_compositional, assign_length, held_out_splits
+from gscan_ros.data.splits import (K_SHOT_SPLIT, SPLIT_NAMES, SplitResult, assign_compositional, assign_length,
+                                   held_out_splits)
 from gscan_ros.errors import GscanError
 from gscan_ros.world import Action, demonstrate
+from gscan_ros.world.types import SUPPORTED_GRID_SIZES
 
 SPLIT_KINDS = ("compositional", "length")
 FORMATS = ("txt", "mcap")
@@ -67,7 +72,7 @@ class GenerationConfig:
     percentage_dev: float = 0.01
     k_shot: int = 1  # cautiously examples moved into train (compositional only)
     cut_off_target_length: int = 15  # length split: longer targets are held out
-    grid_size: int = 6
+    grid_size: int | None = None
     other_objects_sample_percentage: float = OTHER_OBJECTS_SAMPLE_PERCENTAGE
 
     def resolved(self) -> "GenerationConfig":
@@ -78,7 +83,11 @@ class GenerationConfig:
             self,
             num_resampling=defaults["num_resampling"] if self.num_resampling is None else self.num_resampling,
             percentage_train=defaults["percentage_train"] if self.percentage_train is None else self.percentage_train,
+            grid_size=defaults["grid_size"] if self.grid_size is None else self.grid_size,
         )
+        if out.grid_size not in SUPPORTED_GRID_SIZES:
+            raise GscanError(f"grid size {out.grid_size} is not supported "
+                             f"({SUPPORTED_GRID_SIZES[0]} to {SUPPORTED_GRID_SIZES[-1]})")
         if out.max_examples is not None and out.max_examples < 1:
             raise GscanError(f"--examples must be positive, got {out.max_examples}")
         if out.num_resampling < 1:
@@ -88,13 +97,15 @@ class GenerationConfig:
         return out
 
 
-# Compositional: inferred from the released counts (module docstring). Length split
-# (I): no adverbs; 13 resamplings give ~420k candidates like the released ~418k, and
-# an 80/20 train/test cut of the short examples fits its train/dev/test counts
-# (GSCAN_SPEC §7.5, §13.1 leave the exact flags open).
+# Both kinds' defaults reproduce the released split sizes. Compositional (A-H): a 6x6
+# grid, 5 resamplings, 10 % test (module docstring). Length (I): no adverbs, a 12x12
+# grid, 5 resamplings and a 20 % test: 720 (command, target) pairs x 592 layouts =
+# 426,240 candidates, of which those longer than the cut-off (15) are held out and the
+# rest split 80/20 then 99/1, the released train/dev/test/target_lengths counts
+# (docs/data.md gives the arithmetic).
 _DEFAULTS = {
-    "compositional": {"num_resampling": 5, "percentage_train": 0.9},
-    "length": {"num_resampling": 13, "percentage_train": 0.8},
+    "compositional": {"num_resampling": 5, "percentage_train": 0.9, "grid_size": 6},
+    "length": {"num_resampling": 5, "percentage_train": 0.8, "grid_size": 12},
 }
 
 
@@ -233,14 +244,20 @@ def _map_chunks(config, placements, tasks, workers: int) -> Iterator[_ChunkResul
 # Driver
 # ---------------------------------------------------------------------------------------
 def generate_dataset(out_dir: str | os.PathLike, config: GenerationConfig = GenerationConfig(), *,
-                     workers: int = 1, fmt: str = "txt", progress: bool = False) -> GenerationReport:
-    """Generate a dataset into `out_dir` (DIR/dataset.txt, or DIR/<split>/ bags for mcap)."""
+                     workers: int = 1, fmt: str = "txt", progress: bool = False,
+                     overwrite: bool = False) -> GenerationReport:
+    """Generate a dataset into `out_dir` (DIR/dataset.txt, or DIR/<split>/ bags for mcap).
+
+    A dataset already in `out_dir` is refused unless `overwrite`; then its dataset.txt and
+    split bags are removed before the new one is written, so no stale split remains.
+    Nothing is written before the settings are checked.
+    """
     if fmt not in FORMATS:
         raise GscanError(f"unknown format {fmt!r}; choose from {', '.join(FORMATS)}")
     start = time.perf_counter()
     config = config.resolved()
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    previous = _previous_dataset(out_dir, overwrite)
 
     layout_rng = np.random.default_rng([config.seed, _STREAM_PLACEMENTS])
     placements = {t: sample_placements(layout_rng, config.grid_size, config.num_resampling) for t in ALL_OBJECTS}
@@ -250,6 +267,9 @@ def generate_dataset(out_dir: str | os.PathLike, config: GenerationConfig = Gene
     dropped = sum(int((c.labels == _DROPPED).sum()) for c in chunks)
     tasks = [(c.command_index, c.targets, m) for c, m in zip(chunks, masks) if m.any()]
     labels = np.concatenate([c.labels[m] for c, m in zip(chunks, masks)]).astype(np.int8)
+    if config.split_kind == "compositional":
+        _check_k_shot(config.k_shot, int((labels == SPLIT_NAMES.index(K_SHOT_SPLIT)).sum()))
+    out_dir.mkdir(parents=True, exist_ok=True)
 
     with tempfile.TemporaryDirectory(prefix=".gscan_generate_", dir=out_dir) as scratch:
         store_path = Path(scratch) / "examples.jsonl"
@@ -263,6 +283,7 @@ def generate_dataset(out_dir: str | os.PathLike, config: GenerationConfig = Gene
             result = assign_length(split_rng, lengths, keys, config.cut_off_target_length,
                                    config.percentage_train, config.percentage_dev)
         header = _header(config, result, generated=len(labels), candidates=candidates)
+        _remove_dataset(previous)
         with open(store_path, "rb") as store:
             def lines(split: str) -> Iterator[str]:
                 for i in result.splits[split]:
@@ -332,3 +353,44 @@ def _write_bags(out_dir: Path, result: SplitResult, lines, progress: bool) -> Pa
         write_bag(out_dir / split, tqdm(episodes, total=len(indices), desc=split, unit="ep", disable=not progress),
                   overwrite=True)
     return out_dir
+
+
+def _check_k_shot(k_shot: int, available: int) -> None:
+    """k-shot takes examples from adverb_1: refuse more than it holds (never clamp silently)."""
+    if not 0 <= k_shot <= available:
+        raise GscanError(f"--k-shot must be in [0, {available}] (the {K_SHOT_SPLIT} examples these settings "
+                         f"generate), got {k_shot}")
+
+
+def _previous_dataset(out_dir: Path, overwrite: bool) -> list[Path]:
+    """What an earlier `generate` wrote to `out_dir` (dataset.txt, <split>/ bags); refused
+    without `overwrite`, and also with it where a split bag holds files of someone else's."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise GscanError(f"--out {out_dir} is a file, not a directory")
+    bags = [out_dir / s for s in SPLIT_NAMES if is_bag(out_dir / s)]
+    found = ([out_dir / DATASET_FILE] if (out_dir / DATASET_FILE).exists() else []) + bags
+    if found and not overwrite:
+        names = ", ".join(p.name for p in found[:3]) + (", ..." if len(found) > 3 else "")
+        raise GscanError(f"--out {out_dir} already holds a dataset ({names}); pass --overwrite to replace it")
+    for bag in bags:
+        own = bag_owned_files(bag)
+        foreign = sorted(p.name for p in bag.iterdir() if p not in own)
+        if foreign:
+            raise GscanError(f"{bag} holds files that are not the bag's ({', '.join(foreign[:3])}); "
+                             "refusing to overwrite it")
+    return found
+
+
+def _remove_dataset(paths: list[Path]) -> None:
+    """Delete a previous dataset: dataset.txt and the split bags' own files (checked by
+    `_previous_dataset`), then the emptied split folders."""
+    for path in paths:
+        if path.name == DATASET_FILE:
+            path.unlink()
+            continue
+        for own in bag_owned_files(path):
+            if own.is_dir():
+                shutil.rmtree(own)
+            else:
+                own.unlink()
+        path.rmdir()

@@ -15,6 +15,7 @@ import numpy as np
 
 from gscan_ros.data.episode import Episode
 from gscan_ros.errors import DatasetFormatError
+from gscan_ros.world.types import GRID_SIZE, SUPPORTED_GRID_SIZES
 
 
 @dataclass
@@ -56,9 +57,10 @@ class RandomSource:
     """
 
     seed: int = 0
+    grid_size: int = GRID_SIZE
 
     def next(self) -> Episode:
-        episode = sample_episode(self.seed)
+        episode = sample_episode(self.seed, self.grid_size)
         self.seed += 1
         return episode
 
@@ -66,23 +68,28 @@ class RandomSource:
         return f"random situation (seed {episode.meta['seed']})"
 
 
-def sample_episode(seed: int) -> Episode:
-    """The episode of `seed` (see RandomSource)."""
-    from gscan_ros.data.commands import COMMANDS
+def sample_episode(seed: int, grid_size: int = GRID_SIZE, command: str | None = None) -> Episode:
+    """The episode of `seed` on a `grid_size` grid (see RandomSource); `command` fixes the
+    command (CommandError if it is not one of the 675) instead of drawing it."""
+    from gscan_ros.data.commands import COMMANDS, parse_command
     from gscan_ros.data.sampling import possible_targets, sample_placements, sample_situations
     from gscan_ros.world import demonstrate
 
     rng = np.random.default_rng(seed)
-    command = COMMANDS[rng.integers(len(COMMANDS))]
+    command = parse_command(command) if command is not None else COMMANDS[rng.integers(len(COMMANDS))]
     targets = possible_targets(command)
     target = targets[rng.integers(len(targets))]
-    placements = sample_placements(rng)
+    if grid_size not in SUPPORTED_GRID_SIZES:
+        raise DatasetFormatError(f"grid_size {grid_size} is not supported "
+                                 f"({SUPPORTED_GRID_SIZES[0]} to {SUPPORTED_GRID_SIZES[-1]})")
+    placements = sample_placements(rng, grid_size)
     placement = placements[rng.integers(len(placements))]
     situation = sample_situations(rng, command, target, (placement,))[0]
     actions = tuple(demonstrate(situation, command.text))
     return Episode(command.text, situation, actions, split="random", meta={"seed": seed})
 
 
-def episode_source(dataset: str, split: str, index: int, seed: int) -> DatasetSource | RandomSource:
-    """The dataset source when `dataset` is set, else seeded sampling."""
-    return DatasetSource(dataset, split, index) if dataset else RandomSource(seed)
+def episode_source(dataset: str, split: str, index: int, seed: int,
+                   grid_size: int = GRID_SIZE) -> DatasetSource | RandomSource:
+    """The dataset source when `dataset` is set, else seeded sampling on a `grid_size` grid."""
+    return DatasetSource(dataset, split, index) if dataset else RandomSource(seed, grid_size)

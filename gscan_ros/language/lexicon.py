@@ -116,9 +116,8 @@ class Lexicon:
         pos = tuple(sorted(set(parts_of_speech)))
         if not set(pos) <= _ALL_POS:
             raise LexiconError(f"unknown WordNet parts of speech {sorted(set(pos) - _ALL_POS)}; use a, s, r, v, n")
-        root = Path(wordnet_dir or os.environ.get(WORDNET_DIR_ENV) or DEFAULT_WORDNET_DIR)
         vocab = tuple(sorted({w.lower() for w in vocabulary}))
-        return cls(_wordnet_concepts(vocab, pos, str(root.resolve())), pos)
+        return cls(_wordnet_concepts(vocab, pos, wordnet_root(wordnet_dir)), pos)
 
     # ------------------------------------------------------------------ lookup
     def module_for(self, word: str) -> tuple[str, int]:
@@ -183,6 +182,16 @@ class _DebianWordNetReader(WordNetCorpusReader):
 
     def map_wn(self, version="wordnet"):
         return None
+
+
+def wordnet_root(wordnet_dir: str | os.PathLike | None = None) -> str:
+    """The WordNet directory: `wordnet_dir`, else $GSCAN_WORDNET_DIR, else /usr/share/wordnet (resolved)."""
+    return str(Path(wordnet_dir or os.environ.get(WORDNET_DIR_ENV) or DEFAULT_WORDNET_DIR).resolve())
+
+
+def wordnet_reader(wordnet_dir: str | os.PathLike | None = None) -> WordNetCorpusReader:
+    """nltk's reader on WordNet 3.0 (cached per process); LexiconError if the data is missing."""
+    return _open_wordnet(wordnet_root(wordnet_dir))
 
 
 @lru_cache(maxsize=1)

@@ -12,9 +12,9 @@ from functools import lru_cache
 from typing import ClassVar, Protocol, Sequence, runtime_checkable
 
 from gscan_ros.errors import CommandError
+from gscan_ros.language.canonical import canonicalize
 from gscan_ros.language.graph import CommandGraph, GraphEdge, GraphNode
 from gscan_ros.language.lexicon import Lexicon
-from gscan_ros.language.tokens import tokenize
 
 
 @runtime_checkable
@@ -27,12 +27,14 @@ class Parser(Protocol):
 
 
 class GrammarParser(ABC):
-    """A built-in parser: tokenize, then build the graph of the token tuple (cached).
+    """A built-in parser: canonicalize, then build the graph of the canonical tokens (cached).
 
-    Parsing is a pure function of the tokens and the lexicon, so its outcome is memoized
-    per parser instance on the normalized token tuple in one bounded LRU: the graph
-    (immutable), or the message of the CommandError, so a repeated ungrammatical command
-    costs no parse either.
+    Canonicalization (`canonical.canonicalize`: determiners, WordNet synonyms, adjective
+    order) comes first, so a paraphrase gets exactly its canonical command's graph, with
+    the typed text kept in `graph.typed`. Parsing is a pure function of the tokens and
+    the lexicon, so its outcome is memoized per parser instance on the canonical token
+    tuple in one bounded LRU: the graph (immutable), or the message of the CommandError,
+    so a repeated ungrammatical command costs no parse either.
     """
 
     name: ClassVar[str]
@@ -42,10 +44,11 @@ class GrammarParser(ABC):
         self._cached_outcome = lru_cache(maxsize=cache_size)(self._graph_or_error)
 
     def parse(self, command: str) -> CommandGraph:
-        outcome = self._cached_outcome(tokenize(command))
+        canonical = canonicalize(command)
+        outcome = self._cached_outcome(canonical.tokens)
         if isinstance(outcome, str):
             raise CommandError(outcome)
-        return outcome
+        return outcome.with_typed(canonical.typed)
 
     def _graph_or_error(self, tokens: tuple[str, ...]) -> CommandGraph | str:
         try:

@@ -85,13 +85,63 @@ def read_checkpoint(path: str | os.PathLike) -> dict:
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises many types for corrupt/unsafe files
-        raise CheckpointError(f"cannot read checkpoint {str(path)!r}: {type(exc).__name__}: {exc}") from None
+        raise CheckpointError(f"cannot read checkpoint {str(path)!r}: {_load_problem(exc)}") from None
     if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
         raise CheckpointError(f"{str(path)!r} is not a gscan_ros checkpoint of format {FORMAT}")
     missing = [k for k in ("kind", "model_config", "vocabulary", "lexicon", "parser", "state_dict") if k not in ckpt]
     if missing:
         raise CheckpointError(f"checkpoint {str(path)!r} lacks {missing}")
+    validate_checkpoint(ckpt, path)
     return ckpt
+
+
+def validate_checkpoint(ckpt: dict, path: str | os.PathLike) -> None:
+    """Refuse, at load, a checkpoint no working model can come from: an unknown kind, an
+    empty or malformed vocabulary, a config with non-positive sizes, NaN/inf weights (which
+    would otherwise decode garbage and score 0 % without a word)."""
+    where = f"checkpoint {str(path)!r}"
+    kind = ckpt["kind"]
+    if kind not in KINDS:
+        raise CheckpointError(f"{where}: unknown model kind {kind!r}; expected one of {KINDS}")
+    entries = "modules" if kind == "compositional" else "tokens"
+    vocabulary = ckpt["vocabulary"].get(entries) if isinstance(ckpt["vocabulary"], dict) else None
+    if not isinstance(vocabulary, list) or not vocabulary:
+        raise CheckpointError(f"{where}: empty vocabulary (no {entries})")
+    if kind == "compositional":
+        from gscan_ros.model.compositional import ModelConfig as config_class, ModuleTable
+
+        for spec in ModuleTable.from_list(vocabulary).specs:
+            if spec.arity < 0 or spec.num_heads < 1:
+                raise CheckpointError(f"{where}: module {spec.key!r} has arity {spec.arity} and "
+                                      f"{spec.num_heads} heads (need >= 0 and >= 1)")
+    else:
+        from gscan_ros.model.seq2seq import Seq2SeqConfig as config_class
+    try:
+        config_class.from_dict(ckpt["model_config"])
+    except (TypeError, ValueError, AttributeError) as exc:
+        raise CheckpointError(f"{where}: model_config: {exc}") from None
+    state = ckpt["state_dict"]
+    if not isinstance(state, dict) or not state:
+        raise CheckpointError(f"{where}: state_dict holds no tensors")
+    for name, tensor in state.items():
+        if not isinstance(tensor, torch.Tensor):
+            raise CheckpointError(f"{where}: state_dict entry {name!r} is not a tensor")
+        if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
+            raise CheckpointError(f"{where}: tensor {name!r} holds NaN or infinite values")
+
+
+def _load_problem(exc: Exception) -> str:
+    """torch's reason, without its advice to load with `weights_only=False`.
+
+    That advice means executing the file's code, which a checkpoint never needs (and a
+    node must never do with a file it was handed), so only the unpickler's finding is kept.
+    """
+    text = str(exc)
+    if "weights_only" not in text:
+        return f"{type(exc).__name__}: {text}"
+    finding = text.partition("WeightsUnpickler error:")[2].strip()
+    finding = finding.splitlines()[0].split(". ")[0].rstrip(".") if finding else "unsupported content"
+    return f"not a plain tensor checkpoint ({finding}); gscan_ros loads checkpoints without running their code"
 
 
 def restore_model(ckpt: dict, model: nn.Module | None = None) -> nn.Module:

@@ -39,10 +39,11 @@ from torch import nn
 
 from gscan_ros.errors import CheckpointError, GraphError, LexiconError
 from gscan_ros.language.graph import CommandGraph
-from gscan_ros.world.types import GRID_SIZE, NUM_CHANNELS, Action
+from gscan_ros.world.types import GRID_SIZE, NUM_CHANNELS, SUPPORTED_GRID_SIZES, Action
 
 MESSAGES = ("attention", "state", "attention+state")
 ATTENTION_STATES = ("broadcast", "add")
+SIZE_MAPS = ("softmax", "minmax")
 
 
 # --------------------------------------------------------------------------- config
@@ -93,6 +94,11 @@ class ModelConfig(DictConfig):
     before the ReLU, so the module's own state shapes its map (one reading of the paper's
     "mapped to the same dimension before being combined"). Same parameters either way;
     'add' runs every module's GRU and trains step by step."""
+    size_map: str = "softmax"
+    """The map an antonym-pair module (big|small) passes to its parent: its 'softmax'
+    attention (this project's default), or 'minmax': the min-max normalised map of the
+    overlap loss, as the original code passes it (GSCAN_SPEC §8.6, quirk Q16) and as the
+    published numbers were produced."""
     num_actions: int = len(Action)
     """Output classes: the six gSCAN actions plus EOS, ids = `Action` values."""
 
@@ -101,11 +107,29 @@ class ModelConfig(DictConfig):
             raise ValueError(f"message must be one of {MESSAGES}, got {self.message!r}")
         if self.attention_state not in ATTENTION_STATES:
             raise ValueError(f"attention_state must be one of {ATTENTION_STATES}, got {self.attention_state!r}")
+        if self.size_map not in SIZE_MAPS:
+            raise ValueError(f"size_map must be one of {SIZE_MAPS}, got {self.size_map!r}")
         if self.attention_state == "add" and not self.uses_attention:
             raise ValueError("attention_state='add' needs attention maps; message='state' has none")
-        object.__setattr__(self, "cnn_kernels", tuple(int(k) for k in self.cnn_kernels))
+        # Sizes come from YAML and checkpoints: a list, a float or a negative fails here, not in torch.
+        for name in ("grid_size", "in_channels", "cnn_channels", "att_dim", "rnn_layers", "rnn_dim", "num_actions"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        if self.grid_size not in SUPPORTED_GRID_SIZES:
+            raise ValueError(f"grid_size {self.grid_size} is not supported "
+                             f"({SUPPORTED_GRID_SIZES[0]} to {SUPPORTED_GRID_SIZES[-1]})")
+        kernels = self.cnn_kernels
+        if not (isinstance(kernels, (list, tuple)) and kernels
+                and all(isinstance(k, int) and not isinstance(k, bool) and k > 0 for k in kernels)):
+            raise ValueError(f"cnn_kernels must be a non-empty list of positive integers, got {kernels!r}")
+        object.__setattr__(self, "cnn_kernels", tuple(kernels))
         if any(k % 2 == 0 for k in self.cnn_kernels):
             raise ValueError(f"cnn_kernels must be odd for 'same' padding, got {self.cnn_kernels}")
+        if not (isinstance(self.cnn_dropout, (int, float)) and 0 <= self.cnn_dropout < 1):
+            raise ValueError(f"cnn_dropout must be a number in [0, 1), got {self.cnn_dropout!r}")
+        if not (isinstance(self.antonym_weight, (int, float)) and 0 <= self.antonym_weight < math.inf):
+            raise ValueError(f"antonym_weight must be a finite number >= 0, got {self.antonym_weight!r}")
 
     @property
     def feature_dim(self) -> int:
@@ -511,6 +535,7 @@ class Layout:
         src = np.tile(np.arange(J), (B, 1))
         root = np.zeros(B, dtype=np.int64)
         occupied = np.zeros((B, J), dtype=bool)
+        has_antonyms = np.zeros((B, J), dtype=bool)
         pairs: list[list[tuple[int, int]]] = []
         self.words: list[list[tuple[int, str]]] = []
         slots_of = [s.slots for s in table.specs]
@@ -521,6 +546,7 @@ class Layout:
                 for j, e in enumerate(level, lo):
                     unit[b, j], module[b, j] = e.unit, e.module
                     occupied[b, j] = True
+                    has_antonyms[b, j] = bool(table.specs[e.module].antonyms)
                     if e.shadow_of is None:
                         slot_of[e.node] = j
                     else:
@@ -545,7 +571,7 @@ class Layout:
         t = torch.from_numpy
         self.unit, self.module, self.child, self.slot_mask = t(unit), t(module), t(child), t(slot_mask)
         self.src, self.root, self.pairs, self.pair_mask = t(src), t(root), t(pair_t), t(pair_mask)
-        self.occupied = t(occupied)
+        self.occupied, self.has_antonyms = t(occupied), t(has_antonyms)
 
 
 def _graph_levels(graph: CommandGraph, table: ModuleTable) -> list[list[_Entry]]:
@@ -722,6 +748,8 @@ class CompositionalNetwork(nn.Module):
                 S = bank.max_slots
                 score_w = bank.att_out_w[u][:, :, :S] * layout.slot_mask[:, lo:hi, :, None]
                 blk["score_w"] = score_w.reshape(B, k, S * A)
+            if cfg.uses_attention and cfg.size_map == "minmax":
+                blk["minmax"] = layout.has_antonyms[:, lo:hi]
             if cfg.state_in_attention:
                 blk["att_state_w"], blk["att_state_b"] = bank.att_state_w[u], bank.att_state_b[u]
             if cfg.passes_state:
@@ -776,7 +804,7 @@ class CompositionalNetwork(nn.Module):
                 state = None
                 if cfg.state_in_attention:
                     state = torch.einsum("nki,nkia->nka", h_prev, blk["att_state_w"]) + blk["att_state_b"]
-                maps_done.append(self._attend(blk, _child_maps(maps_done, child), p, state))
+                maps_done.append(_size_maps(blk, self._attend(blk, _child_maps(maps_done, child), p, state)))
                 if not cfg.runs_every_gru:
                     continue  # the root's GRU runs after the loop
                 parts.append(torch.bmm(maps_done[-1], feats))  # attention-weighted feature sum
@@ -833,9 +861,7 @@ class CompositionalNetwork(nn.Module):
         n, P, _ = pairs.shape
         cells = maps.shape[-1]
         sel = maps.gather(1, pairs.reshape(n, 2 * P, 1).expand(-1, -1, cells)).view(n, P, 2, cells)
-        lo, hi = sel.amin(-1, keepdim=True), sel.amax(-1, keepdim=True)
-        rng = hi - lo
-        norm = ((sel - lo) / torch.where(rng > 0, rng, torch.ones_like(rng)) + 1e-5).clamp(0.0, 1.0)
+        norm = minmax_normalize(sel)
         prod = (norm[:, :, 0] * norm[:, :, 1]).sum(-1) / cells
         return (prod * top["pair_mask"]).sum(-1)
 
@@ -884,9 +910,9 @@ class CompositionalNetwork(nn.Module):
         # gradient per block.
         proj_blocks = proj.split([hi - lo for lo, hi in bound.spans], 2)
         for blk, p in zip(bound.blocks, proj_blocks):
-            step_blk = {key: blk[key].index_select(0, rows) for key in ("feat_b", "score_w")}
+            step_blk = {key: blk[key].index_select(0, rows) for key in ("feat_b", "score_w", "minmax") if key in blk}
             cmaps = _child_maps(maps_done, blk["child"].index_select(0, rows))
-            maps_done.append(self._attend(step_blk, cmaps, p))
+            maps_done.append(_size_maps(step_blk, self._attend(step_blk, cmaps, p)))
         maps = torch.cat(maps_done[1:], 1)
         top = bound.top
         root = top["root"].index_select(0, rows)[:, None, None]
@@ -958,6 +984,22 @@ class CompositionalNetwork(nn.Module):
         w = self.bank.att_feat_w.index_select(0, units.reshape(-1)).view(B, J, S, Fd, A)
         w = w.permute(0, 3, 1, 2, 4).reshape(B, Fd, J * S * A)
         return _SegmentMatmul.apply(feats, w, sizes).view(feats.shape[0], feats.shape[1], J, S, A)
+
+
+def minmax_normalize(maps: torch.Tensor) -> torch.Tensor:
+    """Each map (last dim = cells) scaled to [0, 1] (a flat map divides by 1), + 1e-5,
+    clipped to [0, 1]: the original's normalisation of size-word maps (GSCAN_SPEC §8.6)."""
+    lo, hi = maps.amin(-1, keepdim=True), maps.amax(-1, keepdim=True)
+    rng = hi - lo
+    return ((maps - lo) / torch.where(rng > 0, rng, torch.ones_like(rng)) + 1e-5).clamp(0.0, 1.0)
+
+
+def _size_maps(blk: dict, maps: torch.Tensor) -> torch.Tensor:
+    """With size_map='minmax', antonym-pair slots pass their min-max normalised map on
+    (maps [n, k, cells]); otherwise the softmax maps unchanged."""
+    if "minmax" not in blk:
+        return maps
+    return torch.where(blk["minmax"][..., None], minmax_normalize(maps), maps)
 
 
 def _child_maps(maps_done: list[torch.Tensor], child: torch.Tensor) -> torch.Tensor:
@@ -1104,6 +1146,16 @@ class Rollout:
         res = self.net.step(self.bound, self.hidden, feats)
         self.hidden = res.hidden
         return res.logits, res.maps
+
+    def word_maps(self, maps: torch.Tensor, row: int) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+        """Row `row` of `step`'s maps as float32 [g, g] grids: word -> its map, and word -> the
+        map of its antonym head run on the same inputs (words of antonym pairs only)."""
+        g = self.net.cfg.grid_size
+        grids = maps[row].reshape(-1, g, g).numpy().astype(np.float32)
+        word_of = dict(self.words[row])
+        pairs, mask = self.bound.top["pairs"][row].tolist(), self.bound.top["pair_mask"][row].tolist()
+        return ({word: grids[slot] for slot, word in word_of.items()},
+                {word_of[slot]: grids[shadow] for (slot, shadow), m in zip(pairs, mask) if m})
 
     def advance(self, actions: torch.Tensor) -> None:
         """The network conditions on world states only, not on its past actions."""

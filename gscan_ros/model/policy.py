@@ -18,7 +18,7 @@ from gscan_ros.errors import CheckpointError, GraphError
 from gscan_ros.language.graph import CommandGraph
 from gscan_ros.language.lexicon import Lexicon
 from gscan_ros.model.checkpoint import checkpoint_lexicon, read_checkpoint, restore_model
-from gscan_ros.world.types import Action, GRID_SIZE
+from gscan_ros.world.types import NUM_CHANNELS, Action
 
 DEFAULT_CHECKPOINT = "default_model.pt"
 
@@ -32,6 +32,8 @@ def default_checkpoint_path() -> Path:
 class StepOutput:
     action: Action
     attention: dict[str, np.ndarray] = field(default_factory=dict)  # node word -> float32[6, 6]
+    # node word -> the map of its antonym head on the same inputs (words of antonym pairs only)
+    antonyms: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 class Policy:
@@ -82,21 +84,27 @@ class Policy:
             raise GraphError(f"graph comes from the {graph.parser!r} parser; this model expects {self._parser_name!r}")
         self._rollout = self.rollout([graph])
 
+    @property
+    def grid_size(self) -> int:
+        return self.model.cfg.grid_size
+
+    @property
+    def observation_shape(self) -> tuple[int, int, int]:
+        """(G, G, 16): the observations the model was trained on."""
+        return (self.grid_size, self.grid_size, getattr(self.model.cfg, "in_channels", NUM_CHANNELS))
+
     @torch.no_grad()
     def step(self, observation: np.ndarray) -> StepOutput:
-        """One decoding step on uint8[6, 6, 16]: the argmax action (or EOS) and each word's map."""
+        """One decoding step on uint8[G, G, 16] (G: the model's grid): the argmax action (or EOS),
+        each word's map and, for a word of an antonym pair, its antonym head's map."""
         if self._rollout is None:
             raise GraphError("Policy.step called before reset(graph)")
         obs = np.asarray(observation)
-        expected = (GRID_SIZE, GRID_SIZE, getattr(self.model.cfg, "in_channels", 16))
+        expected = self.observation_shape
         if obs.shape != expected:
             raise CheckpointError(f"observation has shape {obs.shape}; the model expects {expected}")
         logits, maps = self._rollout.step(obs[None].astype(np.uint8, copy=False))
         action = Action(int(logits[0].argmax()))
         self._rollout.advance(logits.argmax(-1))
-        attention = {}
-        if maps is not None:
-            g = int(np.sqrt(maps.shape[-1]))
-            for slot, word in self._rollout.words[0]:
-                attention[word] = maps[0, slot].reshape(g, g).numpy().astype(np.float32)
-        return StepOutput(action, attention)
+        attention, antonyms = self._rollout.word_maps(maps, 0) if maps is not None else ({}, {})
+        return StepOutput(action, attention, antonyms)

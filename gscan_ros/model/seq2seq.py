@@ -17,7 +17,7 @@ from torch import nn
 
 from gscan_ros.errors import CommandError
 from gscan_ros.model.compositional import DictConfig, ModelConfig, TeacherOutput, VisualEncoder, sparse_states
-from gscan_ros.world.types import Action
+from gscan_ros.world.types import GRID_SIZE, Action
 
 
 def command_vocabulary() -> list[str]:
@@ -45,9 +45,24 @@ class Seq2SeqConfig(DictConfig):
     """Dropout on the cell features."""
     num_actions: int = len(Action)
     """Output classes: six actions + EOS (`Action` values)."""
+    grid_size: int = GRID_SIZE
+    """Side of the square grid the observations have (6 compositional, 12 for split I)."""
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "cnn_kernels", tuple(int(k) for k in self.cnn_kernels))
+        # Sizes come from YAML and checkpoints: a list, a float or a negative fails here, not in torch.
+        for name in ("embedding_dim", "hidden", "cnn_channels", "num_actions", "grid_size"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        kernels = self.cnn_kernels
+        if not (isinstance(kernels, (list, tuple)) and kernels
+                and all(isinstance(k, int) and not isinstance(k, bool) and k > 0 and k % 2 for k in kernels)):
+            raise ValueError(f"cnn_kernels must be a non-empty list of odd positive integers, got {kernels!r}")
+        object.__setattr__(self, "cnn_kernels", tuple(kernels))
+        for name in ("dropout", "cnn_dropout"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and 0 <= value < 1):
+                raise ValueError(f"{name} must be a number in [0, 1), got {value!r}")
 
 
 class _Additive(nn.Module):
@@ -72,7 +87,7 @@ class Seq2Seq(nn.Module):
         self.embed = nn.Embedding(len(self.tokens) + 1, E, padding_idx=0)
         self.encoder = nn.LSTM(E, H, batch_first=True, bidirectional=True)
         self.visual = VisualEncoder(ModelConfig(cnn_kernels=cfg.cnn_kernels, cnn_channels=cfg.cnn_channels,
-                                                cnn_dropout=cfg.cnn_dropout))
+                                                cnn_dropout=cfg.cnn_dropout, grid_size=cfg.grid_size))
         self.visual_proj = nn.Linear(self.visual.cfg.feature_dim, H)
         self.action_embed = nn.Embedding(cfg.num_actions + 1, E)  # last id = start of sequence
         self.decoder = nn.LSTMCell(E + 2 * H, H)

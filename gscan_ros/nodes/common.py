@@ -27,9 +27,11 @@ COMMAND_GRAPH = "command_graph"
 STATUS = "status"
 OBSERVATION = "observation"
 SITUATION = "situation"  # gSCAN situation JSON of the current world state (for recorders)
+WORLD_RESET = "world_reset"  # std_msgs/Header stamped with the time the world was (re)loaded
 WORLD_IMAGE = "world_image"
 ACTION = "action"
 ATTENTION_PREFIX = "attention"
+SIZE_ORDERING = f"{ATTENTION_PREFIX}/size_ordering"  # (-att_small + att_big) / 2, commands with a size word
 RESET_WORLD = "reset_world"
 
 # World-state-like topics: a late subscriber still gets the current state (DESIGN.md).
@@ -147,6 +149,32 @@ def guarded(callback: CallbackT) -> CallbackT:
         return None
 
     return guarded_callback  # type: ignore[return-value]
+
+
+def guarded_trigger(failure: str) -> Callable[[CallbackT], CallbackT]:
+    """`guarded` for a std_srvs/Trigger service: any exception becomes `success=False`.
+
+    The response message is `<failure>: <reason>`, `status` gets the same line, and the
+    node keeps serving (an exception escaping a service callback ends the node).
+    """
+
+    def decorate(callback: CallbackT) -> CallbackT:
+        @functools.wraps(callback)
+        def guarded_callback(self, request, response):
+            try:
+                return callback(self, request, response)
+            except GscanError as exc:
+                reason = str(exc)
+            except Exception as exc:  # noqa: BLE001 - a node must survive its own bugs
+                self.get_logger().error(traceback.format_exc())
+                reason = f"internal error in {callback.__name__}: {type(exc).__name__}: {exc}"
+            response.success, response.message = False, f"{failure}: {reason}"
+            self.status.reject(response.message)
+            return response
+
+        return guarded_callback  # type: ignore[return-value]
+
+    return decorate
 
 
 NodeT = TypeVar("NodeT", bound=Node)

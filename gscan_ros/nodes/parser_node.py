@@ -3,7 +3,15 @@
 A command the parser cannot handle (unknown word, empty, not in the gSCAN grammar)
 is reported on `status` and publishes nothing, so the policy keeps its current
 episode. Commands longer than `max_command_chars` are rejected before parsing, so
-megabyte strings cost no parser time.
+megabyte strings cost no parser time. The subscription takes the serialized message,
+so invalid UTF-8 and embedded NULs reach the language layer's `command_text` check
+(the CLI's) instead of being replaced or cut off by rclpy.
+
+A paraphrase ("Push the small blue cylinder") is parsed as the gSCAN command it means
+(the language layer's `canonicalize`, inside every built-in parser); what was
+understood — the canonical command and each rewrite, e.g. `large → big (WordNet
+synonym in large.a.01)` — is logged and published on `status`, and the graph carries
+the typed text (`typed`) for the episode recorder.
 """
 from __future__ import annotations
 
@@ -11,8 +19,11 @@ from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from std_msgs.msg import String
 
-from gscan_ros.errors import GscanError
+from gscan_ros.errors import CommandError, GscanError
+from gscan_ros.language.canonical import canonicalize
 from gscan_ros.language.registry import get_parser
+from gscan_ros.language.synonyms import synonym_table
+from gscan_ros.language.tokens import command_text
 from gscan_ros.model.checkpoint import checkpoint_lexicon, read_checkpoint
 from gscan_ros.model.policy import default_checkpoint_path
 from gscan_ros.nodes.common import (
@@ -26,7 +37,7 @@ from gscan_ros.nodes.common import (
     quote,
     run,
 )
-from msg_adapters import graph_to_msg
+from msg_adapters import cdr_to_string_bytes, graph_to_msg
 
 PARSERS = ("semantic", "constituency", "dependency")
 
@@ -55,23 +66,38 @@ class ParserNode(Node):
         ckpt = read_checkpoint(checkpoint or default_checkpoint_path())
         parser = parser or str(ckpt["parser"])
         self._parser = get_parser(parser, checkpoint_lexicon(ckpt))
+        try:
+            synonym_table()  # built now, so the first paraphrase is not a second late
+        except GscanError as exc:
+            self.get_logger().warning(f"WordNet synonyms unavailable, only gSCAN words are understood: {exc}")
         self._graph_pub = self.create_publisher(String, COMMAND_GRAPH, LATCHED_QOS)
-        self.create_subscription(String, COMMAND, self.on_command, EVENT_QOS)
+        self.create_subscription(String, COMMAND, self.on_command, EVENT_QOS, raw=True)
         self.get_logger().info(f"parsing commands with the {parser} parser")
 
     @guarded
-    def on_command(self, msg: String) -> None:
+    def on_command(self, cdr: bytes) -> None:
+        """`cdr`: the serialized std_msgs/String (see the module docstring)."""
+        data = cdr_to_string_bytes(cdr)
         limit = self._max_chars.value
-        if len(msg.data) > limit:
-            self.status.reject(f"rejected command {quote(msg.data)}: longer than max_command_chars={limit}")
-            return
         try:
-            graph = self._parser.parse(msg.data)
+            text = command_text(data)
+            if len(text) > limit:
+                raise CommandError(f"longer than max_command_chars={limit}")
+            canonical = canonicalize(text)
+            graph = self._parser.parse(text)
         except GscanError as exc:
-            self.status.reject(f"rejected command {quote(msg.data)}: {exc}")
+            self.status.reject(f"rejected command {quote(_shown(data))}: {exc}")
             return
         self._graph_pub.publish(graph_to_msg(graph))
-        self.get_logger().info(f"parsed {quote(msg.data)} into {len(graph.nodes)} nodes")
+        if canonical.mappings:  # logged too
+            self.status.info(f"{canonical.explain()} ({len(graph.nodes)} nodes)")
+        else:
+            self.get_logger().info(f"parsed {quote(text)} into {len(graph.nodes)} nodes")
+
+
+def _shown(data: bytes) -> str:
+    """A rejected command for a status line: its text, with undecodable bytes as \\xNN."""
+    return data.decode("utf-8", "backslashreplace")
 
 
 def main(args: list[str] | None = None) -> int:

@@ -9,8 +9,11 @@ Episode protocol (docs/ros.md "Lock-step"):
   on an observation *published after* action t. "After" compares the observation's
   DDS source timestamp with the time action t was sent, so a reply that was already
   in flight, or a latched copy, is never mistaken for the result of action t;
-- the episode ends with `<eos>`, either the model's or forced after `max_steps`.
-Each step also publishes every word module's attention map on `attention/<word>`.
+- the episode ends with `<eos>`, either the model's or forced after `max_steps`, or
+  is aborted by a world reset (`world_reset`): the policy sends nothing more for it,
+  and ignores observations, graphs and replies from before the reset.
+Each step also publishes every word module's attention map on `attention/<word>` and, for
+a command with a size word, the size-ordering map on `attention/size_ordering`.
 """
 from __future__ import annotations
 
@@ -20,7 +23,7 @@ import numpy as np
 from rcl_interfaces.msg import IntegerRange, ParameterDescriptor
 from rclpy.node import Node
 from sensor_msgs.msg import Image
-from std_msgs.msg import String, UInt8MultiArray
+from std_msgs.msg import Header, String, UInt8MultiArray
 
 from gscan_ros.errors import GscanError
 from gscan_ros.language.graph import CommandGraph
@@ -32,15 +35,18 @@ from gscan_ros.nodes.common import (
     EVENT_QOS,
     LATCHED_QOS,
     OBSERVATION,
+    SIZE_ORDERING,
     VIEWER_QOS,
+    WORLD_RESET,
     StatusReporter,
     describe,
     guarded,
     run,
     topic_token,
 )
+from gscan_ros.training.explain import size_ordering
 from gscan_ros.world.types import Action
-from msg_adapters import action_to_msg, attention_to_msg, msg_to_graph, msg_to_observation
+from msg_adapters import action_to_msg, attention_to_msg, msg_to_graph, msg_to_observation, msg_to_reset
 
 
 class PolicyNode(Node):
@@ -73,13 +79,19 @@ class PolicyNode(Node):
         self._policy = policy
         self._action_pub = self.create_publisher(String, ACTION, EVENT_QOS)
         self._attention_pubs: dict[str, object] = {}
+        self._size_ordering_pub = None
         self._observation: np.ndarray | None = None
         self._observation_ns = 0  # DDS source timestamp of the newest observation
         self._sent_ns = -1  # when the last action left this node (-1: never)
         self._graph: CommandGraph | None = None  # the running episode's graph, None when idle
+        self._graph_ns = 0  # DDS source timestamp of the running episode's graph
         self._steps = 0
         self._step_cap = 0
         self._started_ns = time.time_ns()
+        self._reset_ns = 0  # the world's newest reset: anything published before it is past
+        # The world publishes world_reset before the new state; subscribing to it first
+        # makes the executor take it first when both are waiting.
+        self.create_subscription(Header, WORLD_RESET, self.on_world_reset, LATCHED_QOS)
         self.create_subscription(String, COMMAND_GRAPH, self.on_graph, LATCHED_QOS)
         self.create_subscription(UInt8MultiArray, OBSERVATION, self.on_observation, LATCHED_QOS)
         self.get_logger().info(f"policy ready (parser {policy.parser_name})")
@@ -90,9 +102,24 @@ class PolicyNode(Node):
         return self._policy
 
     @guarded
+    def on_world_reset(self, msg: Header, info: dict) -> None:
+        reset_ns = msg_to_reset(msg)
+        if reset_ns <= self._reset_ns:
+            return
+        self._reset_ns = reset_ns
+        if self._observation_ns < reset_ns:
+            self._observation = None  # the old world's state
+        if self._graph is not None and self._graph_ns < reset_ns:
+            self.status.info(f"aborted {self._graph.command!r} after {self._steps} actions: the world was reset")
+            self._graph = None
+
+    @guarded
     def on_graph(self, msg: String, info: dict) -> None:
         if info["source_timestamp"] < self._started_ns:
             self.get_logger().info("not following the latched command graph published before this node started")
+            return
+        if info["source_timestamp"] < self._reset_ns:
+            self.status.reject("ignored a command graph published before the world was reset")
             return
         if self._graph is not None:
             self.status.info(f"preempted {self._graph.command!r} after {self._steps} actions")
@@ -103,7 +130,7 @@ class PolicyNode(Node):
         except GscanError as exc:
             self.status.reject(f"rejected command graph: {exc}")
             return
-        self._graph, self._steps = graph, 0
+        self._graph, self._graph_ns, self._steps = graph, info["source_timestamp"], 0
         self._step_cap = self._max_steps.value
         self.status.info(f"following {graph.command!r}")
         if self._observation is not None and self._observation_ns > self._sent_ns:
@@ -111,21 +138,29 @@ class PolicyNode(Node):
 
     @guarded
     def on_observation(self, msg: UInt8MultiArray, info: dict) -> None:
+        if info["source_timestamp"] < self._reset_ns:
+            return  # a state of the world before the reset, delivered late
         observation = msg_to_observation(msg)
+        if observation.shape != self._policy.observation_shape:
+            g, want = observation.shape[0], self._policy.grid_size
+            self.status.reject(f"observation is a {g}x{g} grid; the checkpoint was trained on {want}x{want}")
+            return
         self._observation, self._observation_ns = observation, info["source_timestamp"]
         if self._graph is not None and self._observation_ns > self._sent_ns:
             self._act()
 
     def _act(self) -> None:
         if self._steps >= self._step_cap:
-            action, attention = Action.EOS, {}
+            action, attention, ordering = Action.EOS, {}, None
             self.status.info(f"{self._graph.command!r} stopped at max_steps={self._step_cap}")
         else:
             out = self._policy.step(self._observation)
-            action, attention = out.action, out.attention
+            action, attention, ordering = out.action, out.attention, size_ordering(out.attention, out.antonyms)
         self._sent_ns = time.time_ns()
         self._action_pub.publish(action_to_msg(action))
         self._publish_attention(attention)
+        if ordering is not None:
+            self._publish_size_ordering(ordering)
         if action is Action.EOS:
             self.status.info(f"done with {self._graph.command!r} after {self._steps} actions")
             self._graph = None
@@ -139,6 +174,12 @@ class PolicyNode(Node):
                 topic = f"{ATTENTION_PREFIX}/{topic_token(word)}"
                 pub = self._attention_pubs[word] = self.create_publisher(Image, topic, VIEWER_QOS)
             pub.publish(attention_to_msg(weights, upsample=self._upsample))
+
+    def _publish_size_ordering(self, ordering: np.ndarray) -> None:
+        """Shifted to start at 0, so the smallest object is darkest and the biggest lightest."""
+        if self._size_ordering_pub is None:
+            self._size_ordering_pub = self.create_publisher(Image, SIZE_ORDERING, VIEWER_QOS)
+        self._size_ordering_pub.publish(attention_to_msg(ordering - ordering.min(), upsample=self._upsample))
 
 
 def main(args: list[str] | None = None) -> int:

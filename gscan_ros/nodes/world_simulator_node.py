@@ -5,6 +5,10 @@ that is not `<eos>` and not stale gets exactly one `observation` in reply, also 
 it is rejected (the world is then unchanged and the same state is sent again).
 An action whose DDS source timestamp predates the last reset was meant for the old
 world: it is reported on `status` and gets no reply.
+
+Every (re)load first publishes `world_reset`, stamped with the load time, then the new
+state: that stamp is how the policy and the recorder learn that a running episode
+ended with its world (docs/ros.md "Resets").
 """
 from __future__ import annotations
 
@@ -13,7 +17,7 @@ import time
 
 from rclpy.node import Node
 from sensor_msgs.msg import Image
-from std_msgs.msg import String, UInt8MultiArray
+from std_msgs.msg import Header, String, UInt8MultiArray
 from std_srvs.srv import Trigger
 
 from gscan_ros.data.episode import Episode
@@ -26,16 +30,18 @@ from gscan_ros.nodes.common import (
     RESET_WORLD,
     SITUATION,
     WORLD_IMAGE,
+    WORLD_RESET,
     StatusReporter,
     describe,
     guarded,
+    guarded_trigger,
     quote,
     run,
 )
 from gscan_ros.data.sources import episode_source
-from gscan_ros.world.types import Action
+from gscan_ros.world.types import GRID_SIZE, SUPPORTED_GRID_SIZES, Action
 from gscan_ros.world.world import World
-from msg_adapters import image_to_msg, msg_to_action, observation_to_msg
+from msg_adapters import image_to_msg, msg_to_action, observation_to_msg, reset_to_msg
 
 
 class WorldSimulatorNode(Node):
@@ -51,11 +57,16 @@ class WorldSimulatorNode(Node):
         seed = self.declare_parameter(
             "seed", 0, describe("first sampling seed when no dataset; each reset adds 1")
         ).value
+        grid_size = self.declare_parameter(
+            "grid_size", GRID_SIZE, describe(f"grid side of sampled worlds when no dataset "
+                                             f"({SUPPORTED_GRID_SIZES[0]}-{SUPPORTED_GRID_SIZES[-1]})")
+        ).value
         self._images = self.declare_parameter(
             "publish_images", True, describe("render and publish world_image after every step", read_only=False)
         )
         self.status = StatusReporter(self)
-        self._source = episode_source(dataset, split, index, seed)
+        self._source = episode_source(dataset, split, index, seed, grid_size)
+        self._reset_pub = self.create_publisher(Header, WORLD_RESET, LATCHED_QOS)
         self._observation_pub = self.create_publisher(UInt8MultiArray, OBSERVATION, LATCHED_QOS)
         self._situation_pub = self.create_publisher(String, SITUATION, LATCHED_QOS)
         self._image_pub = self.create_publisher(Image, WORLD_IMAGE, LATCHED_QOS)
@@ -76,6 +87,7 @@ class WorldSimulatorNode(Node):
         self._world = World(episode.situation)
         self._reset_ns = time.time_ns()
         self._actions = 0
+        self._reset_pub.publish(reset_to_msg(self._reset_ns))
         self.publish_state()
         text = f"loaded {self._source.describe(episode)}; its command: {episode.command!r}"
         self.status.info(text)
@@ -108,14 +120,10 @@ class WorldSimulatorNode(Node):
             self.status.reject(f"rejected action {quote(msg.data)}: {exc}")
         self.publish_state()
 
+    @guarded_trigger("reset failed, world unchanged")
     def on_reset_world(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        try:
-            response.message = self.load(self._source.next())
-            response.success = True
-        except GscanError as exc:
-            response.message = f"reset failed, world unchanged: {exc}"
-            response.success = False
-            self.status.reject(response.message)
+        response.message = self.load(self._source.next())
+        response.success = True
         return response
 
 

@@ -71,7 +71,14 @@ class EpisodeStore:
         `state_chunks` yields the episodes' T+1 states, concatenated in episode order; it
         is consumed first (it may be what fills `commands` and `actions`)."""
         bits, counts = [], []
+        self.grid_size = None
         for states in tqdm(state_chunks, total=total, desc="caching states", unit="chunk", disable=not progress):
+            if states.ndim != 4 or states.shape[1] != states.shape[2] or states.shape[3] != NUM_CHANNELS:
+                raise ValueError(f"states must be [T, G, G, {NUM_CHANNELS}], got {list(states.shape)}")
+            if self.grid_size not in (None, states.shape[1]):
+                raise ValueError(f"episodes on {self.grid_size}x{self.grid_size} and {states.shape[1]}x"
+                                 f"{states.shape[1]} grids in one dataset")
+            self.grid_size = int(states.shape[1])
             flat = states.reshape(len(states), -1)
             if flat.max(initial=0) > 1:
                 raise ValueError("observations must be one-hot (0/1) encodings")
@@ -93,12 +100,13 @@ class EpisodeStore:
         self.state_ptr[1:] = np.cumsum(counts_all)
 
     def initial_states(self, ids: Sequence[int]) -> np.ndarray:
-        """uint8[B, 6, 6, 16]: the first state of episodes `ids`, rebuilt from the set bits."""
-        out = np.zeros((len(ids), GRID_SIZE * GRID_SIZE * NUM_CHANNELS), dtype=np.uint8)
+        """uint8[B, G, G, 16]: the first state of episodes `ids`, rebuilt from the set bits."""
+        g = self.grid_size or GRID_SIZE
+        out = np.zeros((len(ids), g * g * NUM_CHANNELS), dtype=np.uint8)
         for row, i in enumerate(ids):
             state = self.ep_ptr[i]
             out[row, self.bits[self.state_ptr[state] : self.state_ptr[state + 1]]] = 1
-        return out.reshape(len(ids), GRID_SIZE, GRID_SIZE, NUM_CHANNELS)
+        return out.reshape(len(ids), g, g, NUM_CHANNELS)
 
     def __len__(self) -> int:
         return len(self.commands)

@@ -6,6 +6,7 @@ Unknown keys are an error naming the key, so a typo never silently trains the de
 """
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
@@ -36,7 +37,20 @@ class TrainConfig:
     batch_size: int = 200
     """Episodes per update."""
     lr: float = 1e-3
-    """Adam learning rate (betas 0.9/0.999, no decay, no clipping, as the original)."""
+    """Adam (peak) learning rate, betas 0.9/0.999 (the original: 1e-3, constant)."""
+    warmup_updates: int = 0
+    """Linear warm-up from 0 to `lr` over this many updates; 0 = none (the original)."""
+    lr_decay: str = "none"
+    """After warm-up: 'none' (constant, the original), 'cosine' or 'linear' decay to
+    `lr * min_lr_ratio` at update `decay_updates`, constant afterwards."""
+    decay_updates: int = 0
+    """Update at which the decay ends; 0 = `max_updates`."""
+    min_lr_ratio: float = 0.1
+    """Final learning rate as a fraction of `lr` (with `lr_decay`)."""
+    grad_clip: float = 0.0
+    """Clip the global gradient norm to this; 0 = no clipping (the original)."""
+    target_dev_exact_match: float = 0.0
+    """Stop once a validation reaches this dev exact match (%); 0 = train to `max_updates`."""
     max_updates: int = 150_000
     """Stop after this many updates (the paper trains 150k at batch 200)."""
     max_minutes: float = 0.0
@@ -49,6 +63,9 @@ class TrainConfig:
     """Split used for periodic closed-loop validation."""
     max_train_examples: int = 0
     """Use only the first N training episodes; 0 = all."""
+    max_train_target_length: int = 0
+    """Train only on episodes of at most this many actions (the original's `max_seq_length`;
+    the paper's Table 2 trains split I at 15, 14 and 13); 0 = all."""
     validate_every: int = 500
     """Updates between validations (closed-loop exact match on the dev subset)."""
     max_dev_examples: int = 500
@@ -71,6 +88,7 @@ class TrainConfig:
             "model_kind": ("compositional", "seq2seq"),
             "lexicon": ("wordnet", "none"),
             "batching": ("mixed", "per_command"),
+            "lr_decay": ("none", "cosine", "linear"),
         }
         for key, allowed in checks.items():
             if getattr(self, key) not in allowed:
@@ -78,11 +96,37 @@ class TrainConfig:
         for key in ("batch_size", "max_updates", "validate_every", "checkpoint_every", "log_every", "eval_batch_size"):
             if int(getattr(self, key)) <= 0:
                 raise ConfigError(f"{key} must be positive, got {getattr(self, key)!r}")
+        for key in ("warmup_updates", "decay_updates", "max_train_examples", "max_train_target_length",
+                    "max_dev_examples", "threads"):
+            if int(getattr(self, key)) < 0:
+                raise ConfigError(f"{key} must be >= 0, got {getattr(self, key)!r}")
+        for key in ("lr", "min_lr_ratio", "grad_clip", "target_dev_exact_match", "max_minutes"):
+            value = float(getattr(self, key))
+            if not math.isfinite(value) or value < 0:
+                raise ConfigError(f"{key} must be a finite number >= 0, got {getattr(self, key)!r}")
+        if self.lr <= 0:
+            raise ConfigError(f"lr must be positive, got {self.lr!r}")
+        if self.min_lr_ratio > 1:
+            raise ConfigError(f"min_lr_ratio must be in [0, 1], got {self.min_lr_ratio!r}")
+        if self.target_dev_exact_match > 100:
+            raise ConfigError(f"target_dev_exact_match is a percentage (0-100), got {self.target_dev_exact_match!r}")
         if int(self.snapshot_every) < 0:
             raise ConfigError(f"snapshot_every must be >= 0, got {self.snapshot_every!r}")
         if not isinstance(self.model, dict):
             raise ConfigError(f"model must be a mapping of model settings, got {self.model!r}")
         self.model_config()  # validates model keys
+
+    def lr_factor(self, step: int) -> float:
+        """Multiplier of `lr` for update `step` (0-based): warm-up, then the decay."""
+        if step < self.warmup_updates:
+            return (step + 1) / self.warmup_updates
+        if self.lr_decay == "none":
+            return 1.0
+        end = self.decay_updates or self.max_updates
+        span = max(end - self.warmup_updates, 1)
+        progress = min(max(step - self.warmup_updates, 0) / span, 1.0)
+        shape = 0.5 * (1.0 + math.cos(math.pi * progress)) if self.lr_decay == "cosine" else 1.0 - progress
+        return self.min_lr_ratio + (1.0 - self.min_lr_ratio) * shape
 
     def model_config(self):
         """The ModelConfig / Seq2SeqConfig these settings describe (ConfigError on bad keys)."""
@@ -129,16 +173,23 @@ class TrainConfig:
                 data = yaml.safe_load(Path(path).read_text()) or {}
             except OSError as exc:
                 raise ConfigError(f"cannot read config {str(path)!r}: {exc.strerror}") from None
+            except UnicodeDecodeError as exc:
+                raise ConfigError(f"config {str(path)!r} is not UTF-8 text (byte {exc.start})") from None
             except yaml.YAMLError as exc:
-                raise ConfigError(f"config {str(path)!r} is not valid YAML: {exc}") from None
+                raise ConfigError(f"config {str(path)!r} is not valid YAML: {' '.join(str(exc).split())}") from None
             if not isinstance(data, dict):
                 raise ConfigError(f"config {str(path)!r} must be a mapping")
+        if not isinstance(data.get("model") or {}, dict):
+            raise ConfigError(f"model must be a mapping of model settings, got {data['model']!r}")
         data = {**data, "model": dict(data.get("model") or {})}
         for item in overrides:
             key, sep, raw = item.partition("=")
             if not sep or not key:
                 raise ConfigError(f"override {item!r} must look like key=value")
-            value = yaml.safe_load(raw)
+            try:
+                value = yaml.safe_load(raw)
+            except yaml.YAMLError:
+                raise ConfigError(f"override {item!r}: {raw!r} is not a YAML value") from None
             if key.startswith("model."):
                 data["model"][key[len("model."):]] = value
             else:

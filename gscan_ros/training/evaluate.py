@@ -18,12 +18,13 @@ import torch
 from tqdm import tqdm
 
 from gscan_ros.data.episode import Episode
-from gscan_ros.errors import InvalidActionError
+from gscan_ros.errors import GscanError, InvalidActionError
 from gscan_ros.model.policy import Policy
-from gscan_ros.world.types import Action
+from gscan_ros.world.types import ADVERBS, COLORS, TRANSITIVE_VERBS, Action
 from gscan_ros.world.world import World
 
 MAX_STEPS = 120
+SIZE_WORDS = ("big", "small")
 SPLIT_LETTERS = {
     "test": "A", "visual_easier": "B", "visual": "C", "situational_1": "D", "situational_2": "E",
     "contextual": "F", "adverb_1": "G", "adverb_2": "H", "target_lengths": "I",
@@ -90,6 +91,35 @@ class EvalResult:
         return float(np.mean([p.token_accuracy for p in self.predictions])) if self.predictions else 0.0
 
 
+def command_groups(episode: Episode) -> dict[str, str]:
+    """The command type of an episode along the axes its concepts vary on: verb, adverb,
+    size word, colour word, a heavy target (push/pull twice per cell) and target length.
+    Used to see which concept a model learns late (docs/model.md)."""
+    words = episode.command.split()
+    adverb = next((a for a in ADVERBS if episode.command.endswith(" " + a)), "none")
+    target = episode.situation.target_object
+    heavy = target is not None and target.heavy and words[0] in TRANSITIVE_VERBS
+    n = len(episode.actions)
+    return {
+        "verb": words[0],
+        "adverb": adverb.replace(" ", "_"),
+        "size_word": next((w for w in words if w in SIZE_WORDS), "none"),
+        "color_word": "yes" if any(w in COLORS for w in words) else "no",
+        "heavy_target": "yes" if heavy else "no",
+        "target_length": "<=8" if n <= 8 else "9-16" if n <= 16 else ">=17",
+    }
+
+
+def exact_match_by_group(predictions: Sequence[Prediction]) -> dict[str, dict[str, float]]:
+    """Exact match % per value of each `command_groups` axis, e.g. {"adverb": {"none": 97.1, ...}}."""
+    hits: dict[str, dict[str, list[bool]]] = defaultdict(lambda: defaultdict(list))
+    for p in predictions:
+        for axis, value in command_groups(p.episode).items():
+            hits[axis][value].append(p.exact_match)
+    return {axis: {value: round(_pct(flags), 2) for value, flags in sorted(values.items())}
+            for axis, values in hits.items()}
+
+
 def _pct(flags) -> float:
     flags = list(flags)
     return 100.0 * sum(flags) / len(flags) if flags else 0.0
@@ -102,6 +132,11 @@ def evaluate_episodes(model_or_policy, episodes: Sequence[Episode], batch_size: 
     """Closed-loop decode `episodes`, `batch_size` at a time. A bare model is wrapped in a
     Policy with `parser` (and no lexicon)."""
     policy = model_or_policy if isinstance(model_or_policy, Policy) else Policy(model_or_policy, parser)
+    other = next((ep for ep in episodes if ep.situation.grid_size != policy.grid_size), None)
+    if other is not None:
+        g = other.situation.grid_size
+        raise GscanError(f"the model was trained on a {policy.grid_size}x{policy.grid_size} grid, "
+                         f"episode {other.example_id} of split {other.split!r} is on {g}x{g}")
     was_training = policy.model.training
     policy.model.eval()
     result = EvalResult()

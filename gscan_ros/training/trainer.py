@@ -16,14 +16,14 @@ import random
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 import numpy as np
 import torch
 import yaml
 from tqdm import tqdm
 
-from gscan_ros.errors import CheckpointError, DatasetFormatError
+from gscan_ros.errors import CheckpointError, DatasetFormatError, GscanError
 from gscan_ros.language.lexicon import Lexicon
 from gscan_ros.model.checkpoint import (build_model, checkpoint_dict, read_checkpoint, restore_model,
                                         save_checkpoint)
@@ -31,18 +31,18 @@ from gscan_ros.model.compositional import ModuleTable
 from gscan_ros.model.runtime import configure_torch
 from gscan_ros.model.policy import Policy
 from gscan_ros.training.batches import EpisodeStore, EpochCursor, iterate_batches
-from gscan_ros.training.config import TrainConfig
-from gscan_ros.training.evaluate import evaluate_episodes
+from gscan_ros.training.config import ConfigError, TrainConfig
+from gscan_ros.training.evaluate import evaluate_episodes, exact_match_by_group
 
 log = logging.getLogger(__name__)
+
+
+RUN_FILES = ("config.yaml", "metrics.jsonl", "learning_curve.png", "last.pt", "best.pt", "model.pt")
 
 
 @dataclass
 class RunFiles:
     root: Path
-
-    def __post_init__(self) -> None:
-        self.root.mkdir(parents=True, exist_ok=True)
 
     config = property(lambda self: self.root / "config.yaml")
     metrics = property(lambda self: self.root / "metrics.jsonl")
@@ -53,6 +53,32 @@ class RunFiles:
 
     def snapshot(self, step: int) -> Path:
         return self.root / f"step_{step}.pt"
+
+    def existing(self) -> list[Path]:
+        """The run files (and step snapshots) already in the directory."""
+        if not self.root.is_dir():
+            return []
+        return [self.root / n for n in RUN_FILES if (self.root / n).exists()] + sorted(self.root.glob("step_*.pt"))
+
+    def check_writable(self, resume: bool, overwrite: bool) -> None:
+        """Refuse to start a new run over an old one unless told (--resume / --overwrite)."""
+        if self.root.exists() and not self.root.is_dir():
+            raise GscanError(f"run directory {self.root} is a file, not a directory")
+        if resume:
+            if not self.last.exists():
+                raise CheckpointError(f"--resume: no checkpoint at {self.last}")
+            return
+        found = self.existing()
+        if found and not overwrite:
+            raise GscanError(f"{self.root} already holds a run ({', '.join(p.name for p in found[:3])}); "
+                             "pass --resume to continue it or --overwrite to replace it")
+
+    def create(self, resume: bool) -> None:
+        """Make the directory; for a new run, remove the old run's files (only those)."""
+        if not resume:
+            for path in self.existing():
+                path.unlink()
+        self.root.mkdir(parents=True, exist_ok=True)
 
 
 def seed_everything(seed: int) -> dict:
@@ -95,13 +121,25 @@ def module_table(parser, lexicon: Lexicon, extra_graphs=()) -> ModuleTable:
     return ModuleTable.from_graphs([*graphs, *extra_graphs], lexicon)
 
 
+def model_settings(cfg: TrainConfig, store: EpisodeStore) -> dict:
+    """The model config with the grid size of the training data (a config that names
+    another grid size is a ConfigError)."""
+    settings = cfg.model_config().to_dict()
+    if store.grid_size is not None:
+        if "grid_size" in cfg.model and cfg.model["grid_size"] != store.grid_size:
+            raise ConfigError(f"model.grid_size is {cfg.model['grid_size']} but the training data is on a "
+                              f"{store.grid_size}x{store.grid_size} grid")
+        settings["grid_size"] = store.grid_size
+    return settings
+
+
 def new_model(cfg: TrainConfig, parser, lexicon: Lexicon, store: EpisodeStore):
     if cfg.model_kind == "compositional":
         table = module_table(parser, lexicon, store.graphs)
-        return build_model("compositional", cfg.model_config().to_dict(), {"modules": table.to_list()})
+        return build_model("compositional", model_settings(cfg, store), {"modules": table.to_list()})
     from gscan_ros.model.seq2seq import command_vocabulary
 
-    return build_model("seq2seq", cfg.model_config().to_dict(), {"tokens": command_vocabulary()})
+    return build_model("seq2seq", model_settings(cfg, store), {"tokens": command_vocabulary()})
 
 
 def iter_split(data: str, split: str, limit: int = 0) -> Iterator:
@@ -132,12 +170,22 @@ def split_cache(data: str, split: str):
 
 def load_train_store(data: str, cfg: TrainConfig, parser, progress: bool = False) -> EpisodeStore:
     """Teacher-forcing store of the train split: bags from their cache (no replay), else
-    Episodes replayed through World."""
+    Episodes replayed through World. `max_train_target_length` drops longer episodes
+    first, then `max_train_examples` keeps the first N."""
+    cap = cfg.max_train_target_length
     cache = split_cache(data, cfg.train_split)
     if cache is None:
-        return EpisodeStore(iter_split(data, cfg.train_split, cfg.max_train_examples), parser, progress=progress)
+        episodes = iter_split(data, cfg.train_split)
+        if cap:
+            episodes = (ep for ep in episodes if len(ep.actions) <= cap)
+        if cfg.max_train_examples:
+            episodes = itertools.islice(episodes, cfg.max_train_examples)
+        return EpisodeStore(episodes, parser, progress=progress)
+    keep = [i for i in range(len(cache)) if not cap or len(cache.actions(i)) <= cap]
     if cfg.max_train_examples:
-        cache = cache.subset(range(min(cfg.max_train_examples, len(cache))))
+        keep = keep[: cfg.max_train_examples]
+    if len(keep) < len(cache):
+        cache = cache.subset(keep)
     return EpisodeStore.from_cache(cache, parser, progress=progress)
 
 
@@ -154,9 +202,19 @@ def load_dev(data: str, cfg: TrainConfig) -> list:
     return [source[i] for i in pick]
 
 
-def train(cfg: TrainConfig, data: str, out_dir: str | Path, resume: bool = False, progress: bool = True) -> dict:
-    """Train per `cfg` on dataset `data`; returns the final metrics dict."""
+class TrainingDiverged(GscanError):
+    """The loss became NaN or infinite."""
+
+
+def train(cfg: TrainConfig, data: str, out_dir: str | Path, resume: bool = False, progress: bool = True,
+          overwrite: bool = False, on_validation: Callable[[dict], None] | None = None) -> dict:
+    """Train per `cfg` on dataset `data`; returns the final metrics dict.
+
+    A new run refuses a directory that holds a run unless `overwrite` (then only the run's
+    own files are replaced); nothing is written before the data has loaded.
+    `on_validation` sees every validation's metrics (e.g. to print a row)."""
     files = RunFiles(Path(out_dir))
+    files.check_writable(resume, overwrite)
     configure_torch(cfg.threads)
     keep_freed_memory()
     seeds = seed_everything(cfg.seed)
@@ -171,20 +229,23 @@ def train(cfg: TrainConfig, data: str, out_dir: str | Path, resume: bool = False
     dev_eps = load_dev(data, cfg)
     model = new_model(cfg, parser, lexicon, store)
     optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr, betas=(0.9, 0.999))
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, cfg.lr_factor)
     step, cursor, best, elapsed_before = 0, EpochCursor(), -1.0, 0.0
     if resume:
-        if not files.last.exists():
-            raise CheckpointError(f"--resume: no checkpoint at {files.last}")
         ckpt = read_checkpoint(files.last)
         if ckpt.get("parser") != cfg.parser:
             raise CheckpointError(f"--resume: checkpoint was trained with parser {ckpt.get('parser')!r}, config says {cfg.parser!r}")
         restore_model(ckpt, model)
         optimizer.load_state_dict(ckpt["optimizer"])
         step = int(ckpt["step"])
+        scheduler.last_epoch = step
+        for group in optimizer.param_groups:
+            group["lr"] = cfg.lr * cfg.lr_factor(step)
         cursor = EpochCursor(**ckpt["cursor"])
         best = float(ckpt["best_dev_exact_match"])
         elapsed_before = float(ckpt.get("elapsed_s", 0.0))
         _restore_rng(ckpt["rng"])
+    files.create(resume)
     files.config.write_text(yaml.safe_dump(cfg.to_dict(), sort_keys=False))
     n_params = sum(p.numel() for p in model.parameters())
     _append(files.metrics, {"event": "start", "step": step, "seeds": seeds, "train_examples": len(store),
@@ -205,13 +266,16 @@ def train(cfg: TrainConfig, data: str, out_dir: str | Path, resume: bool = False
         nonlocal best
         res = evaluate_episodes(policy, dev_eps, batch_size=cfg.eval_batch_size)
         metrics = {"step": step, "dev_exact_match": res.exact_match, "dev_token_accuracy": res.token_accuracy,
-                   "dev_examples": len(dev_eps)}
+                   "dev_examples": len(dev_eps), "elapsed_s": round(elapsed_before + time.time() - start, 2),
+                   "lr": optimizer.param_groups[0]["lr"], "dev_by_group": exact_match_by_group(res.predictions)}
         model.train()
         if res.exact_match > best or not files.best.exists():
             best = max(best, res.exact_match)
             checkpoint(files.best, metrics, training_state=False)
         _append(files.metrics, {"event": "validation", **metrics})
         plot_learning_curve(files.metrics, files.curve)
+        if on_validation is not None:
+            on_validation(metrics)
         return metrics
 
     start = time.time()
@@ -225,9 +289,15 @@ def train(cfg: TrainConfig, data: str, out_dir: str | Path, resume: bool = False
         cursor, ids = next(batches)
         out = model.teacher_forcing(store.batch(ids, model.table, model.teacher_quantum) if cfg.model_kind == "compositional"
                                     else model.make_batch(store, ids))
+        if not torch.isfinite(out.loss):
+            raise TrainingDiverged(f"the loss became {float(out.loss)} at update {step + 1}; "
+                                   f"{files.last} holds the last good state (try a lower lr or grad_clip)")
         optimizer.zero_grad(set_to_none=True)
         out.loss.backward()
+        if cfg.grad_clip:
+            torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
         optimizer.step()
+        scheduler.step()
         step += 1
         bar.update(1)
         window["loss"] += float(out.loss.detach())
@@ -237,18 +307,21 @@ def train(cfg: TrainConfig, data: str, out_dir: str | Path, resume: bool = False
             now = time.time()
             rate = window["examples"] / max(now - window["t"], 1e-9)
             line = {"event": "train", "step": step, "epoch": cursor.epoch, "loss": window["loss"] / window["n"],
-                    "examples_per_s": rate, "elapsed_s": elapsed_before + now - start}
+                    "examples_per_s": rate, "elapsed_s": elapsed_before + now - start,
+                    "lr": optimizer.param_groups[0]["lr"]}
             _append(files.metrics, line)
             bar.set_postfix(loss=f"{line['loss']:.3f}", ex_s=f"{rate:.0f}")
             window = {"loss": 0.0, "examples": 0, "t": now, "n": 0}
         out_of_time = budget_s and elapsed_before + time.time() - start >= budget_s
+        reached = False
         if step % cfg.validate_every == 0 or step == cfg.max_updates or out_of_time:
             last_metrics = validate()
-        if step % cfg.checkpoint_every == 0 or step == cfg.max_updates or out_of_time:
+            reached = bool(cfg.target_dev_exact_match) and last_metrics["dev_exact_match"] >= cfg.target_dev_exact_match
+        if step % cfg.checkpoint_every == 0 or step == cfg.max_updates or out_of_time or reached:
             checkpoint(files.last, last_metrics, training_state=True)
         if cfg.snapshot_every and step % cfg.snapshot_every == 0:
             checkpoint(files.snapshot(step), last_metrics, training_state=False)
-        if out_of_time:
+        if out_of_time or reached:
             break
     bar.close()
     if not last_metrics or last_metrics.get("step") != step:
@@ -256,9 +329,10 @@ def train(cfg: TrainConfig, data: str, out_dir: str | Path, resume: bool = False
         checkpoint(files.last, last_metrics, training_state=True)
     best_ckpt = read_checkpoint(files.best)
     save_checkpoint(files.model, {k: v for k, v in best_ckpt.items()})
-    _append(files.metrics, {"event": "end", "step": step, "best_dev_exact_match": best,
+    reached = bool(cfg.target_dev_exact_match) and best >= cfg.target_dev_exact_match
+    _append(files.metrics, {"event": "end", "step": step, "best_dev_exact_match": best, "reached_target": reached,
                             "elapsed_s": elapsed_before + time.time() - start})
-    return {"step": step, "best_dev_exact_match": best, **last_metrics}
+    return {"step": step, "best_dev_exact_match": best, "reached_target": reached, **last_metrics}
 
 
 def _rng_state() -> dict:

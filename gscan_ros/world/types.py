@@ -11,7 +11,10 @@ from typing import NamedTuple
 
 from gscan_ros.errors import SituationError
 
-GRID_SIZE = 6
+GRID_SIZE = 6  # the compositional splits' grid; split I is released on 12x12
+# Grid sizes the project supports end to end (world, generator, model, nodes): a size
+# from a bad file is one clear error, not a huge allocation.
+SUPPORTED_GRID_SIZES = range(4, 17)
 
 # Released channel order of the 16-channel encoding (GSCAN_SPEC §4): sizes 1-4,
 # shapes, colors, agent, heading E S W N. Pinned as constants (quirk Q14).
@@ -244,12 +247,19 @@ def _check_position(pos: Position, where: str, n: int) -> None:
         raise SituationError(f"{where}: {tuple(pos)} is outside the {n}x{n} grid")
 
 
+def _describe_grid_sizes() -> str:
+    low, high = SUPPORTED_GRID_SIZES[0], SUPPORTED_GRID_SIZES[-1]
+    return f"supported: {low}" if low == high else f"supported: {low} to {high}"
+
+
 def _validate_situation(s: Situation) -> None:
     """Normalise field types and enforce the invariants listed on `Situation`."""
     setf = object.__setattr__
     n = s.grid_size
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise SituationError(f"situation.grid_size: expected a positive integer, got {n!r}")
+    if n not in SUPPORTED_GRID_SIZES:
+        raise SituationError(f"situation.grid_size: {n} is not supported ({_describe_grid_sizes()})")
     setf(s, "agent_position", Position(*s.agent_position))
     _check_position(s.agent_position, "situation.agent_position", n)
     try:

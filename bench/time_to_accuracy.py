@@ -1,0 +1,113 @@
+"""Time to accuracy: train a config from scratch until a dev exact match target or a time limit.
+
+    .venv/bin/python bench/time_to_accuracy.py --config configs/semantic_fast.yaml \
+        [--target 95] [--max-minutes 30] [--seed 0] [--threads 2] [--data DIR] \
+        [--set key=value ...] [--out RUN_DIR] [--resume | --overwrite]
+
+Without --data, the full compositional set is generated once (seed 0) into
+`data_gen/comp` and reused afterwards. Validation is closed loop on a fixed, seeded
+1,000-episode subset of dev (seed = the run's seed) every `--validate-every` updates.
+The clock is the trainer's: training and validation time, not data loading; a run
+resumed with `--resume` keeps counting from where it stopped.
+
+One row per validation, then as the last line exactly one of
+    time-to-accuracy: reached 95.0% dev exact match after U updates, M.M minutes (X ex/s)
+    time-to-accuracy: not reached (best B.B% after U updates, M.M minutes)
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+DEFAULT_DATA = Path("data_gen/comp")
+DEV_EPISODES = 1000
+
+
+def ensure_data(data: str | None) -> str:
+    if data is not None:
+        return data
+    if not (DEFAULT_DATA / "dataset.txt").exists():
+        from gscan_ros.data.generate import GenerationConfig, generate_dataset
+
+        print(f"generating the full compositional set into {DEFAULT_DATA} (once) ...", flush=True)
+        generate_dataset(DEFAULT_DATA, GenerationConfig(seed=0), workers=1, progress=False)
+    return str(DEFAULT_DATA)
+
+
+def throughput(metrics_path: Path) -> float:
+    """Mean training examples/s over the run's log lines."""
+    rates = [r["examples_per_s"] for r in map(json.loads, metrics_path.read_text().splitlines())
+             if r.get("event") == "train"]
+    return sum(rates) / len(rates) if rates else 0.0
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--config", required=True, metavar="FILE", help="training config (YAML)")
+    ap.add_argument("--target", type=float, default=95.0, metavar="PERCENT", help="dev exact match to reach (95)")
+    ap.add_argument("--max-minutes", type=float, default=30.0, metavar="M", help="time limit (30)")
+    ap.add_argument("--seed", type=int, default=0, help="run seed (0)")
+    ap.add_argument("--threads", type=int, default=2, help="torch threads (2)")
+    ap.add_argument("--data", default=None, metavar="DIR", help=f"dataset (default: {DEFAULT_DATA}, made once)")
+    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                    help="override a training config key (as `gscan-ros train --set`)")
+    ap.add_argument("--validate-every", type=int, default=250, metavar="N", help="updates between validations (250)")
+    ap.add_argument("--out", default=None, metavar="RUN_DIR",
+                    help="run directory (default: runs/tta/<config>_s<seed>)")
+    mode = ap.add_mutually_exclusive_group()
+    mode.add_argument("--resume", action="store_true", help="continue RUN_DIR from its last.pt")
+    mode.add_argument("--overwrite", action="store_true", help="replace a run already in RUN_DIR")
+    args = ap.parse_args(argv)
+
+    from gscan_ros.errors import GscanError
+    from gscan_ros.training.config import TrainConfig
+    from gscan_ros.training.trainer import train
+
+    out = Path(args.out or f"runs/tta/{Path(args.config).stem}_s{args.seed}")
+    try:
+        if not 0 < args.target <= 100:
+            raise GscanError(f"--target must be in (0, 100], got {args.target}")
+        if args.max_minutes <= 0 or args.validate_every <= 0 or args.threads < 1:
+            raise GscanError("--max-minutes, --validate-every and --threads must be positive")
+        cfg = TrainConfig.load(args.config, [
+            *args.overrides, f"seed={args.seed}", f"threads={args.threads}", f"max_minutes={args.max_minutes}",
+            f"target_dev_exact_match={args.target}", f"max_dev_examples={DEV_EPISODES}",
+            f"validate_every={args.validate_every}", f"checkpoint_every={args.validate_every}",
+            f"log_every={min(50, args.validate_every)}",
+        ])
+        data = ensure_data(args.data)
+        header = [f"{'updates':>8} {'minutes':>8} {'ex/s':>7} {'dev EM %':>9}  slowest groups"]
+
+        def row(m: dict) -> None:
+            if header:
+                print(header.pop(), flush=True)
+            groups = sorted(((em, f"{axis}={value}") for axis, values in m["dev_by_group"].items()
+                             for value, em in values.items()), key=lambda x: x[0])[:3]
+            worst = ", ".join(f"{name} {em:.0f}" for em, name in groups)
+            rate = throughput(out / "metrics.jsonl")
+            print(f"{m['step']:>8} {m['elapsed_s'] / 60:>8.1f} {rate:>7.0f} {m['dev_exact_match']:>9.1f}  {worst}",
+                  flush=True)
+
+        result = train(cfg, data, out, resume=args.resume, overwrite=args.overwrite, progress=False,
+                       on_validation=row)
+    except GscanError as exc:
+        print(f"time_to_accuracy: error: {exc}", file=sys.stderr)
+        return 1
+    records = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    validations = [r for r in records if r.get("event") == "validation"]
+    hit = next((r for r in validations if r["dev_exact_match"] >= args.target), None)
+    rate = throughput(out / "metrics.jsonl")
+    if hit is not None:
+        print(f"time-to-accuracy: reached {args.target:.1f}% dev exact match after {hit['step']} updates, "
+              f"{hit['elapsed_s'] / 60:.1f} minutes ({rate:.0f} ex/s)")
+    else:
+        last = validations[-1] if validations else {"step": result["step"], "elapsed_s": 0.0}
+        print(f"time-to-accuracy: not reached (best {max(result['best_dev_exact_match'], 0):.1f}% after "
+              f"{last['step']} updates, {last['elapsed_s'] / 60:.1f} minutes)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,133 @@
+"""The `gscan-ros` parser class and argparse `type=` validators shared by every subcommand.
+
+A bad value is caught while parsing, before a subcommand reads or writes anything, and
+reported like every other gscan-ros error: one line naming the argument, exit status 1.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+from pathlib import Path
+from typing import Callable
+
+from gscan_ros.errors import GscanError
+
+
+class ArgumentParser(argparse.ArgumentParser):
+    """argparse with a one-line error and exit status 1 instead of a usage block and 2
+    (subparsers inherit the class); `--help` is unchanged."""
+
+    def error(self, message: str):
+        self.exit(1, f"{self.prog}: error: {' '.join(message.split())} (see {self.prog} --help)\n")
+
+
+def available_cpus() -> int:
+    """CPUs this process may run on (its affinity mask, else the machine's count)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+# ------------------------------------------------------------------------------ numbers
+def _parse(kind: type, text: str):
+    try:
+        value = kind(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expects {'an integer' if kind is int else 'a number'}, got {text!r}") from None
+    if kind is float and not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expects a finite number, got {text!r}")
+    return value
+
+
+def int_in(low: int, high: int | None = None) -> Callable[[str], int]:
+    """An integer in [low, high] (no upper bound when high is None)."""
+    def check(text: str) -> int:
+        value = _parse(int, text)
+        if value < low or (high is not None and value > high):
+            bound = f">= {low}" if high is None else f"in [{low}, {high}]"
+            raise argparse.ArgumentTypeError(f"must be an integer {bound}, got {text!r}")
+        return value
+
+    return check
+
+
+def float_in(low: float, high: float, *, low_open: bool = False, high_open: bool = False) -> Callable[[str], float]:
+    """A finite number between low and high (each end open or closed)."""
+    def check(text: str) -> float:
+        value = _parse(float, text)
+        if value < low or value > high or (low_open and value == low) or (high_open and value == high):
+            bound = f"{'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
+            raise argparse.ArgumentTypeError(f"must be a number in {bound}, got {text!r}")
+        return value
+
+    return check
+
+
+positive_int = int_in(1)
+nonnegative_int = int_in(0)
+
+
+def positive_float(text: str) -> float:
+    value = _parse(float, text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text!r}")
+    return value
+
+
+def worker_count(text: str) -> int:
+    """A number of worker processes: at least 1, at most the CPUs available."""
+    value = positive_int(text)
+    cpus = available_cpus()
+    if value > cpus:
+        raise argparse.ArgumentTypeError(f"{value} workers but only {cpus} CPU(s) available; use at most {cpus}")
+    return value
+
+
+# -------------------------------------------------------------------------------- paths
+def existing_file(text: str) -> Path:
+    path = Path(text)
+    if not path.is_file():
+        raise argparse.ArgumentTypeError(f"{text!r} {'is a directory' if path.is_dir() else 'does not exist'}, "
+                                         "expected a file")
+    return path
+
+
+def existing_path(text: str) -> Path:
+    """A file or directory that exists (a dataset.txt, its directory, a bag)."""
+    path = Path(text)
+    if not path.exists():
+        raise argparse.ArgumentTypeError(f"{text!r} does not exist")
+    return path
+
+
+def output_dir(text: str) -> Path:
+    """A directory to write into: existing, or creatable (no file in the way)."""
+    path = Path(text)
+    for p in (path, *path.parents):
+        if p.exists():
+            if not p.is_dir():
+                raise argparse.ArgumentTypeError(f"{str(p)!r} is a file, not a directory")
+            return path
+    return path
+
+
+def output_file(*suffixes: str) -> Callable[[str], Path]:
+    """A file to write, ending in one of `suffixes`, in a folder that exists; whether an
+    existing file may be replaced is `refuse_existing`'s call (it depends on --overwrite)."""
+    def check(text: str) -> Path:
+        path = Path(text)
+        if path.suffix.lower() not in suffixes:
+            raise argparse.ArgumentTypeError(f"must end in {' or '.join(suffixes)}, got {text!r}")
+        if path.is_dir():
+            raise argparse.ArgumentTypeError(f"{text!r} is a directory, expected a file name")
+        if not path.parent.is_dir():
+            raise argparse.ArgumentTypeError(f"folder {str(path.parent)!r} does not exist")
+        return path
+
+    return check
+
+
+def refuse_existing(path: Path, overwrite: bool, flag: str = "--out") -> None:
+    """No silent replacement of a user's file: an existing one needs --overwrite."""
+    if path.exists() and not overwrite:
+        raise GscanError(f"{flag} {path} already exists; pass --overwrite to replace it")

@@ -1,0 +1,249 @@
+"""`gscan-ros explain`: what the network thinks, as the paper's figures and as numbers.
+
+- `explain "COMMAND" --out F.png` : Fig. 3 — the world, each word module's map from leaves
+  to root under the parse tree, and the size-ordering map (-att_small + att_big)/2 when
+  the command has a size word; `--step T` for step T, `--gif` (or F.gif) for every step.
+- `explain --progression RUN_DIR "COMMAND" --out F.png` : Fig. 4 — rows are words,
+  columns the run's step_<N>.pt snapshots (train with --set snapshot_every=N).
+- `explain --metrics --data DS` : per split, step-0 localization (how often the map the
+  noun phrase passes up peaks on the target's cell) and the Spearman correlation between
+  the size-ordering value at each object of the referred shape and its size; with
+  `--progression RUN_DIR`, the same along the snapshots.
+The situation comes from `--data DS --split S --index I`, `--situation FILE.json` or
+`--seed N` (a random world where the command has a unique referent; the default, seed 0).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+
+from gscan_ros.cli.args import (
+    existing_file,
+    existing_path,
+    int_in,
+    nonnegative_int,
+    output_file,
+    positive_int,
+    refuse_existing,
+)
+from gscan_ros.errors import GscanError
+
+MAX_FPS = 50
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("explain", help="attention figures (paper Fig. 3/4) and interpretability numbers",
+                              description=__doc__,
+                              formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("command_text", nargs="?", metavar="COMMAND",
+                   help="the command (default: the example's with --data, a random one with --seed)")
+    source = p.add_mutually_exclusive_group()
+    source.add_argument("--data", type=existing_path, metavar="DS",
+                        help="dataset.txt, its directory or a bag: the situation (or the --metrics episodes)")
+    source.add_argument("--situation", type=existing_file, metavar="FILE.json",
+                        help="a gSCAN situation JSON (or an object with a 'situation' key)")
+    source.add_argument("--seed", type=nonnegative_int, metavar="N",
+                        help="a random situation for the command (default: seed 0)")
+    p.add_argument("--split", default="test", help="split of --data (default: test)")
+    p.add_argument("--index", type=nonnegative_int, default=0, help="example index in --split (default: 0)")
+    p.add_argument("--checkpoint", type=existing_file, metavar="CKPT", help="checkpoint (default: the shipped model)")
+    when = p.add_mutually_exclusive_group()
+    when.add_argument("--step", type=nonnegative_int, default=0, metavar="T",
+                      help="the decoding step to show (default: 0, the initial state)")
+    when.add_argument("--gif", action="store_true",
+                      help="an animated GIF with every step (also implied by --out F.gif)")
+    p.add_argument("--out", type=output_file(".png", ".gif"), metavar="FILE", help="the figure, .png or .gif")
+    p.add_argument("--overwrite", action="store_true", help="replace FILE if it exists")
+    p.add_argument("--fps", type=int_in(1, MAX_FPS), default=2, help="GIF frames per second (default: 2)")
+    p.add_argument("--progression", type=existing_path, metavar="RUN_DIR",
+                   help="a training run with step_<N>.pt snapshots: Fig. 4, or the metrics along training")
+    p.add_argument("--max-columns", type=int_in(2, 40), default=8,
+                   help="--progression: at most this many snapshots, evenly spaced (default: 8)")
+    p.add_argument("--metrics", action="store_true", help="print localization and size-ordering numbers for --data")
+    p.add_argument("--splits", nargs="+", metavar="SPLIT", help="--metrics: splits (default: every test split present)")
+    p.add_argument("--max-examples", type=nonnegative_int, default=1000, metavar="N",
+                   help="--metrics: seeded subset of N episodes per split, as `evaluate --max-examples` (0 = all; "
+                        "default: 1000)")
+    p.add_argument("--batch-size", type=positive_int, default=512, help="--metrics: episodes per batch (default: 512)")
+    p.add_argument("--threads", type=nonnegative_int, default=0, help="torch threads (0 = torch default)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from gscan_ros.model.runtime import configure_torch
+
+    _check_combination(args)
+    configure_torch(args.threads)
+    if args.metrics:
+        return _metrics(args)
+    refuse_existing(args.out, args.overwrite)
+    if args.progression:
+        return _progression(args)
+    return _figure(args)
+
+
+def _check_combination(args: argparse.Namespace) -> None:
+    """Arguments that only make sense together (one line, exit 1, before any work)."""
+    if args.metrics:
+        if args.data is None:
+            raise GscanError("--metrics needs --data DS (the episodes to measure on)")
+        if args.command_text or args.out or args.gif:
+            raise GscanError("--metrics prints numbers: it takes no COMMAND, --out or --gif")
+        return
+    if args.out is None:
+        raise GscanError("--out FILE (.png or .gif) is required for a figure")
+    is_gif = args.out.suffix.lower() == ".gif"
+    if args.gif and not is_gif:
+        raise GscanError(f"--gif writes a .gif, but --out is {args.out}")
+    if args.progression and (args.gif or is_gif):
+        raise GscanError("--progression draws one .png (snapshots as columns); no GIF")
+    if args.situation and not args.command_text:
+        raise GscanError("--situation needs a COMMAND")
+
+
+def _episode(args: argparse.Namespace, grid_size: int):
+    """(command, situation, gold actions or None) from --data / --situation / --seed."""
+    from gscan_ros.world.types import Situation
+
+    if args.data is not None:
+        from gscan_ros.data.io import iter_episodes
+
+        episode = next((e for i, e in enumerate(iter_episodes(args.data, [args.split])) if i == args.index), None)
+        if episode is None:
+            raise GscanError(f"{args.data}: split {args.split!r} has no example {args.index}")
+        same = args.command_text in (None, episode.command)
+        return args.command_text or episode.command, episode.situation, list(episode.actions) if same else None
+    if args.situation is not None:
+        try:
+            data = json.loads(args.situation.read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise GscanError(f"--situation {args.situation}: not readable JSON ({exc})") from None
+        situation = Situation.from_json(data["situation"] if isinstance(data, dict) and "situation" in data else data)
+        return args.command_text, situation, None
+    from gscan_ros.data.sources import sample_episode
+
+    episode = sample_episode(args.seed or 0, grid_size, args.command_text)
+    return episode.command, episode.situation, list(episode.actions)
+
+
+def _setup(args: argparse.Namespace, policy):
+    """(command, situation with the command's referent as target, gold actions or None)."""
+    from gscan_ros.training.explain import require_attention, with_referent
+
+    require_attention(policy)
+    command, situation, actions = _episode(args, policy.grid_size)
+    if situation.grid_size != policy.grid_size:
+        g, want = situation.grid_size, policy.grid_size
+        raise GscanError(f"the situation is a {g}x{g} grid; the model was trained on {want}x{want}")
+    return command, with_referent(situation, command), actions
+
+
+def _model_name(args: argparse.Namespace, policy) -> str:
+    name = args.checkpoint.name if args.checkpoint else "shipped model"
+    return f"{name}, update {policy.metadata.get('step', '?')}"
+
+
+def _figure(args: argparse.Namespace) -> int:
+    from gscan_ros.model.policy import Policy
+    from gscan_ros.training.explain import trace
+    from gscan_ros.training.figures import figure_rgb, panel_titles, save_figure, step_figure
+    from gscan_ros.world.render import save_gif
+
+    policy = Policy.from_checkpoint(args.checkpoint)
+    command, situation, _ = _setup(args, policy)
+    gif = args.gif or args.out.suffix.lower() == ".gif"
+    tr = trace(policy, situation, command, until=None if gif else args.step)
+    title = f"{command}   ({_model_name(args, policy)})"
+    if gif:
+        import matplotlib.pyplot as plt
+
+        frames = []
+        for t in range(len(tr.steps)):
+            fig = step_figure(tr, t, title)
+            frames.append(figure_rgb(fig))
+            plt.close(fig)
+        save_gif(frames, args.out, fps=args.fps)
+        print(f"wrote {args.out}: {len(frames)} steps, panels: {', '.join(panel_titles(tr, 0))}")
+        return 0
+    if args.step >= len(tr.steps):
+        raise GscanError(f"the model ended the episode (<eos>) at step {len(tr.steps) - 1}; "
+                         f"--step must be at most {len(tr.steps) - 1}")
+    save_figure(step_figure(tr, args.step, title), args.out)
+    print(f"wrote {args.out}: step {args.step} (next: {tr.steps[args.step].action.token}), "
+          f"panels: {', '.join(panel_titles(tr, args.step))}")
+    return 0
+
+
+def _progression(args: argparse.Namespace) -> int:
+    from gscan_ros.model.policy import Policy
+    from gscan_ros.training.explain import evenly, snapshots, trace
+    from gscan_ros.training.figures import progression_figure, save_figure
+    from gscan_ros.world import demonstrate
+
+    paths = evenly(snapshots(args.progression), args.max_columns)
+    columns, graph = [], None
+    for i, (update, path) in enumerate(paths):
+        policy = Policy.from_checkpoint(path)
+        if i == 0:
+            command, situation, actions = _setup(args, policy)
+            if args.step and actions is None:
+                actions = demonstrate(situation, command)  # every snapshot sees the same states
+        tr = trace(policy, situation, command, actions=actions if args.step else None, until=args.step)
+        if args.step >= len(tr.steps):
+            raise GscanError(f"the demonstration has {len(tr.steps) - 1} actions; --step must be at most that")
+        em = (policy.metadata.get("metrics") or {}).get("dev_exact_match")
+        columns.append((f"update {update}" + ("" if em is None else f"\ndev EM {em:.0f}%"), tr.steps[args.step]))
+        graph = tr.graph
+    subtitle = (f"maps at step {args.step} along the training run {args.progression}: rows are words, columns "
+                "snapshots;\neach map scaled from its minimum to its maximum (noted: ~1/cells = uniform)")
+    save_figure(progression_figure(columns, graph, command, subtitle), args.out)
+    print(f"wrote {args.out}: {len(columns)} snapshots (updates {', '.join(str(u) for u, _ in paths)})")
+    return 0
+
+
+def _metrics(args: argparse.Namespace) -> int:
+    from gscan_ros.model.policy import Policy
+    from gscan_ros.training.explain import (
+        evenly,
+        metrics_table,
+        progression_metrics,
+        progression_table,
+        snapshots,
+        step0_readings,
+        summarize,
+    )
+
+    episodes = _metric_episodes(args)
+    if args.progression:
+        paths = evenly(snapshots(args.progression), args.max_columns)
+        rows = progression_metrics(paths, episodes, args.batch_size)
+        print(f"{len(episodes)} episodes of {args.data}, snapshots of {args.progression}:")
+        print(progression_table(rows), end="")
+        return 0
+    policy = Policy.from_checkpoint(args.checkpoint)
+    summary = summarize(step0_readings(policy, episodes, args.batch_size))
+    print(f"{_model_name(args, policy)} on {args.data} (step 0):")
+    print(metrics_table(summary), end="")
+    return 0
+
+
+def _metric_episodes(args: argparse.Namespace) -> list:
+    """The --splits (default: every test split present) of --data, each cut to a seeded subset
+    of --max-examples exactly as `evaluate --max-examples` cuts it."""
+    import numpy as np
+
+    from gscan_ros.cli.evaluate import EVAL_SPLITS
+    from gscan_ros.cli.evaluate import _episodes as evaluation_episodes
+
+    by_split: dict[str, list] = {}
+    for ep in evaluation_episodes(args.data, args.splits):
+        by_split.setdefault(ep.split, []).append(ep)
+    if not by_split:
+        raise GscanError(f"{args.data} has none of the splits {list(args.splits or EVAL_SPLITS)}")
+    episodes = []
+    for eps in by_split.values():
+        if args.max_examples and len(eps) > args.max_examples:
+            pick = np.random.default_rng([0, len(eps)]).choice(len(eps), args.max_examples, replace=False)
+            eps = [eps[i] for i in sorted(pick)]
+        episodes += eps
+    return episodes

@@ -1,0 +1,289 @@
+"""What the network thinks (paper § "Interpretability and acquisition"), and numbers for it.
+
+- `trace`: one episode step by step through `Policy` (the ROS node's API), keeping every
+  step's world state, action and per-word maps (the data of the paper's Fig. 3).
+- `size_ordering`: (-att_small + att_big) / 2 from one step's maps, where the word's
+  antonym head ran on the same inputs (big|small share one module). policy_node
+  publishes it live with this same function.
+- `referent_word`: the node whose map the noun phrase passes up to the verb.
+- `step0_readings` + `summarize`: per split, how often that map's argmax is the target's
+  cell (localization), and the Spearman correlation between the size-ordering value at
+  each object of the referred shape and its true size.
+- `snapshots`: a run's `step_*.pt` files in update order (Fig. 4, metrics along training).
+"""
+from __future__ import annotations
+
+import re
+from collections import defaultdict
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Iterable, Mapping, Sequence
+
+import numpy as np
+import torch
+
+from gscan_ros.data.episode import Episode
+from gscan_ros.errors import GscanError, InvalidActionError
+from gscan_ros.language.graph import CommandGraph
+from gscan_ros.model.policy import Policy
+from gscan_ros.training.evaluate import MAX_STEPS, SIZE_WORDS, SPLIT_LETTERS
+from gscan_ros.world import CommandFrame, World, resolve_target
+from gscan_ros.world.types import NOUNS, VERBS, Action, Situation, WorldObject
+
+SNAPSHOT_PATTERN = re.compile(r"step_(\d+)\.pt")
+
+
+# ------------------------------------------------------------------------ one episode
+def size_ordering(attention: Mapping[str, np.ndarray], antonyms: Mapping[str, np.ndarray]) -> np.ndarray | None:
+    """(-att_small + att_big) / 2 (paper): high where big objects are, low at small ones.
+
+    `attention` maps words to their maps, `antonyms` a word to its antonym head's map on
+    the same inputs (`StepOutput.antonyms`). None when the command has no size word or
+    the model has no antonym head for it (big and small in separate modules).
+    """
+    for word in SIZE_WORDS:
+        if word in attention and word in antonyms:
+            own, other = np.asarray(attention[word]), np.asarray(antonyms[word])
+            big, small = (own, other) if word == "big" else (other, own)
+            return ((big - small) / 2).astype(np.float32)
+    return None
+
+
+def referent_word(graph: CommandGraph) -> str | None:
+    """The word of the highest node above the noun whose subtree has no verb: the map the
+    noun phrase passes up ("yellow" in the semantic parse of "walk to a yellow small
+    circle", "NP" in the constituency parse). None without exactly one noun and one verb."""
+    nouns = [n.id for n in graph.nodes if n.word in NOUNS]
+    verbs = [n.id for n in graph.nodes if n.word in VERBS]
+    if len(nouns) != 1 or len(verbs) != 1:
+        return None
+    parent = {e.child: e.parent for e in graph.edges}
+
+    def has_verb(node: int) -> bool:
+        return node == verbs[0] or any(has_verb(c) for c in graph.children(node))
+
+    node = nouns[0]
+    while node in parent and not has_verb(parent[node]):
+        node = parent[node]
+    return graph.node(node).word
+
+
+def with_referent(situation: Situation, command: str) -> Situation:
+    """The situation with the command's referent as its target (the figures mark it);
+    unchanged when the command has no unique referent there."""
+    try:
+        target = resolve_target(situation, command)
+    except GscanError:
+        return situation
+    if target == situation.target_object:
+        return situation
+    return replace(situation, target_object=target, direction_to_target=None, distance_to_target=None)
+
+
+@dataclass
+class TraceStep:
+    situation: Situation  # the world state the model saw at this step
+    action: Action  # what the model chose (EOS included)
+    attention: dict[str, np.ndarray]  # word -> float32[g, g]
+    antonyms: dict[str, np.ndarray]  # word -> its antonym head's map on the same inputs
+
+    @property
+    def size_ordering(self) -> np.ndarray | None:
+        return size_ordering(self.attention, self.antonyms)
+
+
+@dataclass
+class Trace:
+    graph: CommandGraph
+    steps: list[TraceStep]
+
+
+def require_attention(policy: Policy) -> None:
+    """GscanError unless the policy's model passes attention maps (compositional, message
+    'attention' or 'attention+state')."""
+    if not getattr(getattr(policy.model, "cfg", None), "uses_attention", False):
+        raise GscanError(f"this checkpoint ({policy.metadata.get('kind', 'unknown')} model) draws no attention "
+                         "maps to show")
+
+
+@torch.no_grad()
+def trace(policy: Policy, situation: Situation, command: str, actions: Sequence[Action] | None = None,
+          until: int | None = None, max_steps: int = MAX_STEPS) -> Trace:
+    """Run one episode and keep every step's maps.
+
+    Closed loop (the model's own actions, as policy_node runs it) unless `actions` is
+    given: then the states are those after each of `actions` (a demonstration), so that
+    several checkpoints are shown the same states. Stops at EOS, after `until` steps
+    (step `until` included), or after `max_steps + 1` decoding steps.
+    """
+    require_attention(policy)
+    graph = policy.parse(command)
+    policy.reset(graph)
+    world = World(situation)
+    steps: list[TraceStep] = []
+    last = max_steps if actions is None else len(actions)
+    for t in range(last + 1):
+        out = policy.step(world.encode())
+        steps.append(TraceStep(world.snapshot(), out.action, out.attention, out.antonyms))
+        move = out.action if actions is None else (actions[t] if t < len(actions) else Action.EOS)
+        if move is Action.EOS or (until is not None and t >= until):
+            break
+        try:
+            world.step(move)
+        except InvalidActionError:
+            pass  # as in closed-loop evaluation: the world stays as it was
+    return Trace(graph, steps)
+
+
+# ------------------------------------------------------------------------ the numbers
+def spearman(x: Sequence[float], y: Sequence[float]) -> float:
+    """Spearman's rank correlation (ties get their mean rank); nan when either side is constant
+    or there are fewer than two pairs."""
+    if len(x) != len(y):
+        raise ValueError(f"spearman needs paired values, got {len(x)} and {len(y)}")
+    if len(x) < 2:
+        return float("nan")
+    rx, ry = _ranks(np.asarray(x, dtype=np.float64)), _ranks(np.asarray(y, dtype=np.float64))
+    rx, ry = rx - rx.mean(), ry - ry.mean()
+    denom = np.sqrt((rx ** 2).sum() * (ry ** 2).sum())
+    return float((rx * ry).sum() / denom) if denom > 0 else float("nan")
+
+
+def _ranks(a: np.ndarray) -> np.ndarray:
+    order = np.argsort(a, kind="stable")
+    ranks = np.empty(len(a))
+    ranks[order] = np.arange(1, len(a) + 1)
+    for value in np.unique(a):  # ties share their mean rank
+        tied = a == value
+        ranks[tied] = ranks[tied].mean()
+    return ranks
+
+
+def localized(referent_map: np.ndarray, target: WorldObject) -> bool:
+    """The map's highest cell is the target's cell."""
+    m = np.asarray(referent_map)
+    row, col = np.unravel_index(int(np.argmax(m)), m.shape)
+    return (int(row), int(col)) == tuple(target.position)
+
+
+def size_correlation(ordering: np.ndarray, situation: Situation, shape: str) -> float:
+    """Spearman between the size-ordering value at each `shape` object's cell and its size."""
+    objects = [o for o in situation.placed_objects if o.shape == shape]
+    values = [float(ordering[o.position.row, o.position.col]) for o in objects]
+    return spearman(values, [o.size for o in objects])
+
+
+@dataclass
+class Reading:
+    """The step-0 maps of one episode that the numbers need."""
+
+    split: str
+    command: str
+    situation: Situation
+    referent: np.ndarray | None  # the map the noun phrase passes up
+    ordering: np.ndarray | None  # the size-ordering map (commands with a size word)
+
+
+@torch.no_grad()
+def step0_readings(policy: Policy, episodes: Sequence[Episode], batch_size: int = 512) -> list[Reading]:
+    """Every episode's initial state through the model, `batch_size` at a time."""
+    require_attention(policy)
+    policy.model.eval()
+    readings = []
+    for start in range(0, len(episodes), batch_size):
+        chunk = episodes[start : start + batch_size]
+        graphs = [policy.parse(ep.command) for ep in chunk]
+        rollout = policy.rollout(graphs)
+        _, maps = rollout.step(np.stack([World(ep.situation).encode() for ep in chunk]))
+        for row, (ep, graph) in enumerate(zip(chunk, graphs)):
+            attention, antonyms = rollout.word_maps(maps, row)
+            word = referent_word(graph)
+            readings.append(Reading(ep.split, ep.command, ep.situation, attention.get(word),
+                                    size_ordering(attention, antonyms)))
+    return readings
+
+
+def summarize(readings: Iterable[Reading]) -> dict[str, dict]:
+    """Per split, then "all": episodes; localization % (of episodes with a target and a
+    referent map); the same by chance for a uniform pick among the objects; episodes with a
+    defined size correlation and their mean Spearman (nan if none)."""
+    groups: dict[str, list[Reading]] = defaultdict(list)
+    for r in readings:
+        groups[r.split].append(r)
+        groups["all"].append(r)
+    out = {}
+    for split in sorted(groups, key=lambda s: (s == "all", SPLIT_LETTERS.get(s, "~"), s)):
+        hits, chance, rhos = [], [], []
+        for r in groups[split]:
+            target = r.situation.target_object
+            if target is not None and r.referent is not None:
+                hits.append(localized(r.referent, target))
+                chance.append(1.0 / len(r.situation.placed_objects))
+            if r.ordering is not None:
+                rho = size_correlation(r.ordering, r.situation, CommandFrame.parse(r.command).shape)
+                if not np.isnan(rho):
+                    rhos.append(rho)
+        out[split] = {
+            "episodes": len(groups[split]),
+            "localization": 100.0 * float(np.mean(hits)) if hits else float("nan"),
+            "localization_chance": 100.0 * float(np.mean(chance)) if chance else float("nan"),
+            "size_episodes": len(rhos),
+            "size_spearman": float(np.mean(rhos)) if rhos else float("nan"),
+        }
+    return out
+
+
+def metrics_table(summary: Mapping[str, Mapping]) -> str:
+    """`summarize`'s result as a markdown table."""
+    lines = ["| split | episodes | localization % | chance % | size episodes | size Spearman |",
+             "|---|---:|---:|---:|---:|---:|"]
+    for split, m in summary.items():
+        name = f"{SPLIT_LETTERS[split]} {split}" if split in SPLIT_LETTERS else split
+        lines.append(f"| {name} | {m['episodes']} | {m['localization']:.1f} | {m['localization_chance']:.1f} "
+                     f"| {m['size_episodes']} | {m['size_spearman']:.3f} |")
+    return "\n".join(lines) + "\n"
+
+
+# --------------------------------------------------------------------------- snapshots
+def snapshots(run_dir: str | Path) -> list[tuple[int, Path]]:
+    """(update, path) of the run's `step_<N>.pt` snapshots, in update order; GscanError if none."""
+    found = sorted((int(m.group(1)), p) for p in Path(run_dir).iterdir()
+                   if p.is_file() and (m := SNAPSHOT_PATTERN.fullmatch(p.name)))
+    if not found:
+        raise GscanError(f"{run_dir} has no step_<N>.pt snapshots; train with --set snapshot_every=N")
+    return found
+
+
+def evenly(items: Sequence, most: int) -> list:
+    """At most `most` of `items`, evenly spaced, first and last included."""
+    if len(items) <= most:
+        return list(items)
+    if most == 1:
+        return [items[-1]]
+    picks = np.linspace(0, len(items) - 1, most).round().astype(int)
+    return [items[i] for i in dict.fromkeys(picks.tolist())]
+
+
+def progression_metrics(paths: Sequence[tuple[int, Path]], episodes: Sequence[Episode],
+                        batch_size: int = 512) -> list[dict]:
+    """For each snapshot: its update, the dev exact match of its last validation (and that
+    validation's update), and `summarize`'s "all" row over `episodes`."""
+    rows = []
+    for step, path in paths:
+        policy = Policy.from_checkpoint(path)
+        metrics = policy.metadata.get("metrics") or {}
+        summary = summarize(step0_readings(policy, episodes, batch_size))["all"]
+        rows.append({"update": step, "dev_exact_match": metrics.get("dev_exact_match"),
+                     "validated_at": metrics.get("step"), **summary})
+    return rows
+
+
+def progression_table(rows: Sequence[Mapping]) -> str:
+    lines = ["| update | dev exact match % | localization % | size Spearman |", "|---:|---:|---:|---:|"]
+    for r in rows:
+        em = r["dev_exact_match"]
+        em_text = "-" if em is None else f"{em:.1f}"
+        if em is not None and r["validated_at"] not in (None, r["update"]):
+            em_text += f" (at {r['validated_at']})"
+        lines.append(f"| {r['update']} | {em_text} | {r['localization']:.1f} | {r['size_spearman']:.3f} |")
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,234 @@
+"""Every gscan-ros subcommand refuses a bad number or path the same way: exit status 1, one
+line on stderr naming the argument, no traceback, nothing written (issue: tracebacks on
+bad arguments). The CLI runs in-process from a scratch working directory, so a default
+output folder (runs/, out/) written by mistake would show up in the snapshot."""
+import pytest
+import torch
+
+from gscan_ros.cli import SUBCOMMANDS, main
+from gscan_ros.cli.args import available_cpus
+from gscan_ros.errors import CheckpointError
+from gscan_ros.model.checkpoint import read_checkpoint, save_checkpoint
+from gscan_ros.model.policy import Policy
+
+from ros_helpers import tiny_checkpoint
+
+CPUS = available_cpus()
+
+# (argv, text the error line must contain). {data}: an existing dataset path, {file}: an
+# existing plain file, {missing}: a path that does not exist, {ckpt}: a valid checkpoint.
+BAD_ARGUMENTS = [
+    # generate
+    ("generate --out {tmp}/g --examples 5 --seed -1", "--seed"),
+    ("generate --out {tmp}/g --examples 5 --seed x", "--seed"),
+    ("generate --out {tmp}/g --examples 0", "--examples"),
+    ("generate --out {tmp}/g --examples -3", "--examples"),
+    ("generate --out {tmp}/g --examples 5 --workers 0", "--workers"),
+    (f"generate --out {{tmp}}/g --examples 5 --workers {CPUS + 1}", f"only {CPUS} CPU(s)"),
+    ("generate --out {tmp}/g --examples 5 --num-resampling 0", "--num-resampling"),
+    ("generate --out {tmp}/g --examples 5 --percentage-train 0", "--percentage-train"),
+    ("generate --out {tmp}/g --examples 5 --percentage-train 1.5", "--percentage-train"),
+    ("generate --out {tmp}/g --examples 5 --percentage-train nan", "--percentage-train"),
+    ("generate --out {tmp}/g --examples 5 --percentage-dev 1", "--percentage-dev"),
+    ("generate --out {tmp}/g --examples 5 --percentage-dev -0.1", "--percentage-dev"),
+    ("generate --out {tmp}/g --examples 5 --k-shot -3", "--k-shot"),
+    ("generate --out {tmp}/g --examples 5 --cut-off-target-length 0", "--cut-off-target-length"),
+    ("generate --out {file} --examples 5", "--out"),
+    ("generate --out {file}/sub --examples 5", "--out"),
+    # verify
+    ("verify {missing}", "DATASET"),
+    ("bag repair {missing} --out {tmp}/r", "BAG"),
+    ("bag repair {data} --out {file}", "--out"),
+    ("verify {data} --limit 0", "--limit"),
+    ("verify {data} --limit x", "--limit"),
+    ("verify {data} --show -1", "--show"),
+    # render
+    ("render {missing} --out {tmp}/a.png", "DATASET"),
+    ("render {data} --out {tmp}/a.gif --fps 0", "--fps"),
+    ("render {data} --out {tmp}/a.gif --fps -2", "--fps"),
+    ("render {data} --out {tmp}/a.gif --fps nan", "--fps"),
+    ("render {data} --out {tmp}/a.gif --fps 1000", "--fps"),
+    ("render {data} --out {tmp}/a.png --cell-px -5", "--cell-px"),
+    ("render {data} --out {tmp}/a.png --cell-px 0", "--cell-px"),
+    ("render {data} --out {tmp}/a.png --cell-px 100000", "--cell-px"),
+    ("render {data} --out {tmp}/a.png --index -1", "--index"),
+    ("render {data} --out {missing}/a.png", "--out"),
+    ("render {data} --out {tmp}/a.txt", "--out"),
+    ("render {data} --out {tmp}", "--out"),
+    ("render {data} --out {tmp}/folder.png", "--out"),
+    ("render {data} --out {png}", "--overwrite"),
+    # parse (no numbers or paths: its choices fail the same way)
+    ("parse walk to a circle --lexicon x", "--lexicon"),
+    # train
+    ("train --data {missing}", "--data"),
+    ("train --data {data} --config {missing}", "--config"),
+    ("train --data {data} --out {file}", "--out"),
+    ("train --data {data} --set lr=nan", "lr"),
+    ("train --data {data} --set lr=[", "lr"),
+    ("train --data {data} --set model.rnn_dim=-5", "rnn_dim"),
+    ("train --data {data} --set model.rnn_dim=[1,2]", "rnn_dim"),
+    ("train --data {data} --set model.cnn_kernels=5", "cnn_kernels"),
+    ("train --data {data} --config {yaml_list}", "batch_size"),
+    ("train --data {data} --config {yaml_model_list}", "model"),
+    ("train --data {data} --config {yaml_latin1}", "UTF-8"),
+    # evaluate
+    ("evaluate --data {missing}", "--data"),
+    ("evaluate --data {data} --checkpoint {missing}", "--checkpoint"),
+    ("evaluate --data {data} --max-examples -3", "--max-examples"),
+    ("evaluate --data {data} --batch-size 0", "--batch-size"),
+    ("evaluate --data {data} --threads -4", "--threads"),
+    ("evaluate --data {data} --seed -1", "--seed"),
+    ("evaluate --data {data} --out {file}", "--out"),
+    # explain
+    ("explain --out {tmp}/a.txt", "--out"),
+    ("explain --data {missing} --out {tmp}/a.png", "--data"),
+    ("explain --checkpoint {missing} --out {tmp}/a.png", "--checkpoint"),
+    ("explain --step -1 --out {tmp}/a.png", "--step"),
+    ("explain --max-columns 1 --out {tmp}/a.png", "--max-columns"),
+    ("explain --metrics --data {data} --max-examples -1", "--max-examples"),
+    ("explain --out {png}", "--overwrite"),
+    # replay
+    ("replay {missing}", "metadata.yaml"),
+    ("replay {data} --max-episodes 0", "--max-episodes"),
+    ("replay {data} --batch-size 0", "--batch-size"),
+    ("replay {data} --checkpoint {missing}", "--checkpoint"),
+    # demo
+    ("demo --episodes 0", "--episodes"),
+    ("demo --timeout 0", "--timeout"),
+    ("demo --timeout nan", "--timeout"),
+    ("demo --max-steps 0", "--max-steps"),
+    ("demo --index -1", "--index"),
+    ("demo --seed -1", "--seed"),
+    # bringup
+    ("bringup --max-steps -5", "--max-steps"),
+    ("bringup --index -1", "--index"),
+    ("bringup --seed -2", "--seed"),
+]
+
+
+@pytest.fixture
+def workdir(tmp_path, monkeypatch):
+    """A scratch cwd with the inputs the table refers to."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "dataset.txt").write_text("{}")
+    (tmp_path / "notes.txt").write_text("mine")
+    (tmp_path / "old.png").write_bytes(b"png")
+    (tmp_path / "folder.png").mkdir()
+    (tmp_path / "list.yaml").write_text("batch_size: [1, 2]\n")
+    (tmp_path / "model_list.yaml").write_text("model: [1, 2]\n")
+    (tmp_path / "latin1.yaml").write_bytes("lr: 0.001 # r\xe9glage\n".encode("latin-1"))
+    return tmp_path
+
+
+def _fill(template: str, tmp) -> list[str]:
+    values = {"tmp": tmp, "data": tmp / "dataset.txt", "file": tmp / "notes.txt", "missing": tmp / "missing",
+              "png": tmp / "old.png", "yaml_list": tmp / "list.yaml", "yaml_model_list": tmp / "model_list.yaml",
+              "yaml_latin1": tmp / "latin1.yaml"}
+    return [word.format(**values) for word in template.split()]
+
+
+def _snapshot(root) -> dict:
+    return {p.relative_to(root): p.read_bytes() if p.is_file() else None for p in sorted(root.rglob("*"))}
+
+
+def run_cli(argv: list[str]) -> int:
+    """main()'s exit status, whether it returns it or the parser exits."""
+    try:
+        return main(argv)
+    except SystemExit as exc:
+        return exc.code
+
+
+def assert_refused(capsys, argv: list[str], names: str) -> str:
+    code = run_cli(argv)
+    captured = capsys.readouterr()
+    lines = captured.err.strip().splitlines()
+    assert code == 1, (argv, captured.err)
+    assert len(lines) == 1, captured.err
+    assert names in lines[0] and "Traceback" not in captured.err
+    assert lines[0].startswith(f"gscan-ros {argv[0]}: error:")
+    return lines[0]
+
+
+def test_the_table_covers_every_subcommand():
+    assert {row[0].split()[0] for row in BAD_ARGUMENTS} == set(SUBCOMMANDS)
+
+
+@pytest.mark.parametrize("template, names", BAD_ARGUMENTS, ids=[row[0] for row in BAD_ARGUMENTS])
+def test_bad_argument_is_one_line_exit_1_and_writes_nothing(workdir, capsys, template, names):
+    before = _snapshot(workdir)
+    assert_refused(capsys, _fill(template, workdir), names)
+    assert _snapshot(workdir) == before
+
+
+@pytest.mark.parametrize("command", SUBCOMMANDS)
+def test_help_still_works(command, capsys):
+    assert run_cli([command, "--help"]) == 0
+    assert capsys.readouterr().out.startswith(f"usage: gscan-ros {command}")
+
+
+def test_render_overwrite_replaces_an_existing_file(workdir):
+    from gscan_ros.data.generate import GenerationConfig, generate_dataset
+
+    generate_dataset(workdir / "data", GenerationConfig(seed=3, max_examples=30))
+    assert main(["render", str(workdir / "data"), "--out", str(workdir / "old.png"), "--cell-px", "8",
+                 "--overwrite"]) == 0
+    assert (workdir / "old.png").read_bytes().startswith(b"\x89PNG")
+
+
+# ----------------------------------------------------------------------- checkpoints
+@pytest.fixture(scope="module")
+def checkpoint_dir(tmp_path_factory):
+    return tiny_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.pt").parent
+
+
+def _broken(checkpoint_dir, name: str, edit) -> str:
+    ckpt = read_checkpoint(checkpoint_dir / "tiny.pt")
+    edit(ckpt)
+    path = checkpoint_dir / f"{name}.pt"
+    save_checkpoint(path, ckpt)
+    return str(path)
+
+
+def _nan_weight(ckpt):
+    name = sorted(ckpt["state_dict"])[0]
+    ckpt["state_dict"][name] = ckpt["state_dict"][name].clone().fill_(float("nan"))
+
+
+BROKEN = {
+    "nan_weights": (_nan_weight, "NaN"),
+    "inf_weights": (lambda c: c["state_dict"].update(
+        {k: torch.full_like(v, float("inf")) for k, v in list(c["state_dict"].items())[-1:]}), "infinite"),
+    "empty_vocabulary": (lambda c: c["vocabulary"].update(modules=[]), "empty vocabulary"),
+    "negative_dimension": (lambda c: c["model_config"].update(rnn_dim=-5), "rnn_dim"),
+    "list_dimension": (lambda c: c["model_config"].update(att_dim=[4]), "att_dim"),
+    "zero_heads": (lambda c: c["vocabulary"]["modules"][0].update(num_heads=0), "heads"),
+}
+
+
+@pytest.mark.parametrize("name", BROKEN)
+def test_unusable_checkpoint_is_refused_at_load(checkpoint_dir, name):
+    edit, message = BROKEN[name]
+    path = _broken(checkpoint_dir, name, edit)
+    with pytest.raises(CheckpointError, match=message):
+        Policy.from_checkpoint(path)
+
+
+def test_evaluate_refuses_nan_weights_naming_the_tensor(checkpoint_dir, workdir, capsys):
+    path = _broken(checkpoint_dir, "nan_weights", _nan_weight)
+    tensor = sorted(torch.load(path, weights_only=True)["state_dict"])[0]
+    before = _snapshot(workdir)
+    line = assert_refused(capsys, ["evaluate", "--checkpoint", path, "--data", str(workdir / "dataset.txt")], tensor)
+    assert "NaN" in line
+    assert _snapshot(workdir) == before
+
+
+def test_policy_node_refuses_a_bad_checkpoint_at_start(checkpoint_dir, capsys, monkeypatch):
+    from gscan_ros.nodes import policy_node
+    from gscan_ros.nodes.harness import fresh_domain_id
+
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(fresh_domain_id()))
+    path = _broken(checkpoint_dir, "empty_vocabulary", BROKEN["empty_vocabulary"][0])
+    assert policy_node.main(["--ros-args", "-p", f"checkpoint:={path}"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "empty vocabulary" in err[0]

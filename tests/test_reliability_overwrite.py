@@ -1,0 +1,63 @@
+"""No writer deletes or replaces a user's files without an explicit flag (issue: data loss)."""
+import pytest
+
+from gscan_ros.cli import main
+from gscan_ros.data.bag import BagWriter
+from gscan_ros.errors import DatasetFormatError
+from gscan_ros.nodes.harness import fresh_domain_id
+
+from ros_helpers import tiny_checkpoint
+
+
+def _user_folder(path):
+    """A folder that holds a metadata.yaml among the user's own files."""
+    path.mkdir()
+    (path / "metadata.yaml").write_text("rosbag2_bagfile_information: {}\n")
+    (path / "thesis.tex").write_text("years of work")
+    (path / "figures").mkdir()
+    (path / "figures" / "plot.png").write_bytes(b"png")
+    return path
+
+
+def _snapshot(path):
+    return {p.relative_to(path): p.read_bytes() for p in sorted(path.rglob("*")) if p.is_file()}
+
+
+def test_bringup_record_refuses_a_folder_that_holds_a_metadata_yaml(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(fresh_domain_id()))
+    folder = _user_folder(tmp_path / "work")
+    before = _snapshot(folder)
+    code = main(["bringup", "--checkpoint", str(tiny_checkpoint(tmp_path / "tiny.pt")), "--record", str(folder)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 1
+    assert len(err) == 1 and str(folder) in err[0] and "Traceback" not in err[0]
+    assert _snapshot(folder) == before
+
+
+@pytest.mark.parametrize("overwrite", [False, True])
+def test_bag_writer_never_deletes_foreign_files(tmp_path, overwrite):
+    folder = _user_folder(tmp_path / "work")
+    before = _snapshot(folder)
+    with pytest.raises(DatasetFormatError, match="refusing to overwrite|pass --overwrite"):
+        BagWriter(folder, overwrite=overwrite).open()
+    assert _snapshot(folder) == before
+
+
+def test_bag_writer_overwrite_replaces_only_an_old_bag(tmp_path):
+    with BagWriter(tmp_path / "bag"):
+        pass
+    with pytest.raises(DatasetFormatError, match="pass --overwrite"):
+        BagWriter(tmp_path / "bag").open()
+    with BagWriter(tmp_path / "bag", overwrite=True):
+        pass
+    assert sorted(p.name for p in (tmp_path / "bag").iterdir()) == ["bag_0.mcap", "metadata.yaml"]
+
+
+def test_demo_refuses_a_non_empty_out_without_overwrite(tmp_path, capsys):
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "notes.txt").write_text("keep")
+    code = main(["demo", "--out", str(out)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 1 and len(err) == 1 and "--overwrite" in err[0]
+    assert (out / "notes.txt").read_text() == "keep" and len(list(out.iterdir())) == 1

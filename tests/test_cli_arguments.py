@@ -79,6 +79,22 @@ BAD_ARGUMENTS = [
     ("evaluate --data {data} --threads -4", "--threads"),
     ("evaluate --data {data} --seed -1", "--seed"),
     ("evaluate --data {data} --out {file}", "--out"),
+    # experiment
+    ("experiment {missing}", "PLAN"),
+    ("experiment {file}", "mapping"),
+    ("experiment {yaml_list} --dry-run", "batch_size"),
+    ("experiment {file} --parallel 0", "--parallel"),
+    (f"experiment {{file}} --parallel {CPUS + 1}", "--parallel"),
+    ("experiment {file} --threads 0", "--threads"),
+    ("experiment {file} --worker 2/2", "--worker"),
+    ("experiment {file} --worker x", "--worker"),
+    ("experiment {file} --results {file}", "--results"),
+    # report
+    ("report {missing} --out {tmp}/t.md", "RUN_DIR"),
+    ("report {tmp} --out {tmp}/t.txt", "--out"),
+    ("report {tmp} --out {missing}/t.md", "--out"),
+    ("report {tmp} --out {png}", "--out"),
+    ("report {tmp} --out {tmp}/t.md", "results.json"),
     # explain
     ("explain --out {tmp}/a.txt", "--out"),
     ("explain --data {missing} --out {tmp}/a.png", "--data"),

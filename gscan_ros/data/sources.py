@@ -84,7 +84,7 @@ def sample_episode(seed: int, grid_size: int = GRID_SIZE, command: str | None = 
                                  f"({SUPPORTED_GRID_SIZES[0]} to {SUPPORTED_GRID_SIZES[-1]})")
     placements = sample_placements(rng, grid_size)
     placement = placements[rng.integers(len(placements))]
-    situation = sample_situations(rng, command, target, (placement,))[0]
+    situation = sample_situations(rng, command, target, (placement,), grid_size=grid_size)[0]
     actions = tuple(demonstrate(situation, command.text))
     return Episode(command.text, situation, actions, split="random", meta={"seed": seed})
 

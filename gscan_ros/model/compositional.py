@@ -44,6 +44,7 @@ from gscan_ros.world.types import GRID_SIZE, NUM_CHANNELS, SUPPORTED_GRID_SIZES,
 MESSAGES = ("attention", "state", "attention+state")
 ATTENTION_STATES = ("broadcast", "add")
 SIZE_MAPS = ("softmax", "minmax")
+SCORE_INITS = ("uniform", "positive")
 
 
 # --------------------------------------------------------------------------- config
@@ -99,6 +100,11 @@ class ModelConfig(DictConfig):
     attention (this project's default), or 'minmax': the min-max normalised map of the
     overlap loss, as the original code passes it (GSCAN_SPEC §8.6, quirk Q16) and as the
     published numbers were produced."""
+    att_score_init: str = "uniform"
+    """Initial weights of each attention's score layer (ReLU units -> cell logit):
+    'uniform' U(-1/sqrt(fan_in), +) as torch's Linear (the original), or 'positive', the
+    same magnitudes made non-negative, so a cell's logit grows with its active units
+    (a training lever, docs/model.md)."""
     num_actions: int = len(Action)
     """Output classes: the six gSCAN actions plus EOS, ids = `Action` values."""
 
@@ -109,6 +115,8 @@ class ModelConfig(DictConfig):
             raise ValueError(f"attention_state must be one of {ATTENTION_STATES}, got {self.attention_state!r}")
         if self.size_map not in SIZE_MAPS:
             raise ValueError(f"size_map must be one of {SIZE_MAPS}, got {self.size_map!r}")
+        if self.att_score_init not in SCORE_INITS:
+            raise ValueError(f"att_score_init must be one of {SCORE_INITS}, got {self.att_score_init!r}")
         if self.attention_state == "add" and not self.uses_attention:
             raise ValueError("attention_state='add' needs attention maps; message='state' has none")
         # Sizes come from YAML and checkpoints: a list, a float or a negative fails here, not in torch.
@@ -472,6 +480,8 @@ class WordModuleBank(nn.Module):
             self.att_state_w = _uniform((U, L * H, A), L * H)
             self.att_state_b = _uniform((U, A), L * H)
             self.att_out_w = _uniform((U, S + 1, A), (S + 1) * A)
+            if cfg.att_score_init == "positive":
+                self.att_out_w.data.abs_()
             self.att_out_b = _uniform((U,), (S + 1) * A)
         in0 = Fd + (H if cfg.passes_state else 0)  # weighted (or, without attention, summed) features
         self.gru_x = nn.ParameterList(_uniform((M, in0 if l == 0 else H, 3 * H), H) for l in range(L))

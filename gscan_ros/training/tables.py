@@ -1,0 +1,433 @@
+"""`gscan-ros report`: the paper's Table 1 and Table 2 from runs' results.json, ours beside theirs.
+
+Runs are grouped by column and by what they were trained on:
+- compositional data with the released single "cautiously" example (k_shot 1) gives
+  Table 1's rows A-F, H and G k=1; data with another k_shot gives only its G row (the
+  paper's label, `paper_figures.K_SHOT_LABELS`: k_shot 11 is the paper's "k=10");
+- length data gives a Table 2 column per longest trained target length, rows = exact
+  match per target length pooled over the run's test splits (test and target_lengths).
+A cell is the mean ± sample std over the group's seeds; the paper's figure sits beside
+it. Notes flag every cell further from the paper's mean than the paper's std, say
+whether that column's dev curve is still rising, and check the paper's qualitative
+claims. The markdown depends on the results only (sorted, fixed formats), so the same
+files give byte-identical output.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import statistics
+from dataclasses import dataclass
+from pathlib import Path
+
+from gscan_ros.errors import GscanError
+from gscan_ros.training.paper_figures import (COLUMN_TITLES, K_SHOT_LABELS, TABLE1, TABLE1_ROWS, TABLE1_SOURCE,
+                                              TABLE2, TABLE2_ROWS, TABLE2_SOURCE)
+
+RISING_POINTS = 1.0  # dev exact match gained over the last 20 % of updates that counts as "still rising"
+MUCH_POINTS = 10.0  # "≫": ahead by more than this many points
+LENGTH_ROWS = TABLE2_ROWS + ("I",)
+_RESULT_KEYS = ("run", "column", "title", "seed", "updates", "max_updates", "data", "splits")
+
+
+class ReportError(GscanError):
+    """Run results that cannot be read or merged into the tables."""
+
+
+@dataclass(frozen=True)
+class Group:
+    """Runs that form one column of a table: same column id, same training data kind."""
+
+    table: int  # 1 or 2
+    column: str
+    variant: str  # "" (Table 1 main), "G k=10" (k-shot data), "<=14" (Table 2)
+    paper_column: str | None
+    title: str
+
+    @property
+    def label(self) -> str:
+        if self.variant.startswith("<="):
+            return f"{self.title}, trained ≤ {self.variant[2:]}"
+        return f"{self.title}, {self.variant}" if self.variant else self.title
+
+    def sort_key(self) -> tuple:
+        order = list(COLUMN_TITLES)
+        rank = order.index(self.paper_column) if self.paper_column in order else len(order)
+        cut = -int(self.variant[2:]) if self.variant.startswith("<=") else 0
+        return self.table, rank, self.column != self.paper_column, self.column, cut, self.variant
+
+
+@dataclass
+class RunResult:
+    name: str
+    group: Group
+    seed: int
+    updates: int
+    max_updates: int
+    best_dev: float | None
+    rows: dict[str, float]  # table row -> exact match %
+    curve: list[tuple[int, float]]  # (update, dev exact match %) from metrics.jsonl
+
+
+# ------------------------------------------------------------------------------ loading
+def load_runs(dirs: list[Path]) -> list[RunResult]:
+    """Every run under `dirs` (a run directory, or folders holding run directories at any
+    depth); a run name found twice is an error (merging workers' copies of one run)."""
+    found: dict[str, Path] = {}
+    runs = []
+    for root in dirs:
+        for path in _result_files(Path(root)):
+            run = _read_run(path)
+            if run.name in found:
+                raise ReportError(f"run {run.name!r} is in both {found[run.name].parent} and {path.parent}")
+            found[run.name] = path
+            runs.append(run)
+    if not runs:
+        raise ReportError(f"no run results.json under {', '.join(str(d) for d in dirs)}")
+    return sorted(runs, key=lambda r: (r.group.sort_key(), r.seed, r.name))
+
+
+def _result_files(root: Path) -> list[Path]:
+    if (root / "results.json").is_file():
+        return [root / "results.json"]
+    return sorted(p for p in root.rglob("results.json")
+                  if not any(part.startswith(".") for part in p.relative_to(root).parts))
+
+
+def _read_run(path: Path) -> RunResult:
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise ReportError(f"cannot read {path}: {exc}") from None
+    missing = [k for k in _RESULT_KEYS if k not in doc] if isinstance(doc, dict) else list(_RESULT_KEYS)
+    if missing:
+        raise ReportError(f"{path} is not a run's results.json (no {missing[0]!r}; made by `gscan-ros experiment`?)")
+    data = doc["data"]
+    if data.get("split_kind") == "length":
+        cut = doc.get("max_train_target_length") or data.get("cut_off_target_length") or 15
+        table, variant, rows = 2, f"<={cut}", _length_rows(doc["splits"])
+    else:
+        k_shot = int(data.get("k_shot", 1))
+        g_row = f"G k={K_SHOT_LABELS[k_shot]}" if k_shot in K_SHOT_LABELS else f"G k_shot={k_shot}"
+        table, variant = 1, "" if k_shot == 1 else g_row
+        rows = {}
+        for split in doc["splits"].values():
+            letter = split["letter"]
+            if letter == "G" or k_shot == 1:
+                rows[g_row if letter == "G" else letter] = float(split["exact_match"])
+    group = Group(table, doc["column"], variant, doc.get("paper_column"), doc["title"])
+    return RunResult(name=doc["run"], group=group, seed=int(doc["seed"]), updates=int(doc["updates"]),
+                     max_updates=int(doc["max_updates"]), best_dev=doc.get("best_dev_exact_match"), rows=rows,
+                     curve=_curve(path.parent / "metrics.jsonl"))
+
+
+def _length_rows(splits: dict) -> dict[str, float]:
+    """Exact match for target lengths 15, 16, 17 and >= 18 pooled over the splits, and
+    split I (target_lengths) as a whole."""
+    pooled: dict[str, list[float]] = {row: [0.0, 0.0] for row in TABLE2_ROWS}
+    for split in splits.values():
+        for length, cell in split.get("by_target_length", {}).items():
+            row = ">=18" if int(length) >= 18 else length
+            if row in pooled:
+                pooled[row][0] += cell["exact_match"] * cell["examples"]
+                pooled[row][1] += cell["examples"]
+    rows = {row: total / count for row, (total, count) in pooled.items() if count}
+    if "target_lengths" in splits:
+        rows["I"] = float(splits["target_lengths"]["exact_match"])
+    return rows
+
+
+def _curve(metrics: Path) -> list[tuple[int, float]]:
+    """Dev exact match per validated update (a resumed run's repeat of an update: the last)."""
+    points: dict[int, float] = {}
+    if metrics.is_file():
+        for line in metrics.read_text().splitlines():
+            try:
+                rec = json.loads(line)
+            except ValueError:
+                continue
+            if rec.get("event") == "validation":
+                points[int(rec["step"])] = float(rec["dev_exact_match"])
+    return sorted(points.items())
+
+
+# ------------------------------------------------------------------------------ numbers
+@dataclass(frozen=True)
+class Cell:
+    values: tuple[float, ...]
+
+    @property
+    def mean(self) -> float:
+        return statistics.fmean(self.values)
+
+    @property
+    def std(self) -> float | None:
+        return statistics.stdev(self.values) if len(self.values) > 1 else None
+
+    def text(self) -> str:
+        return f"{self.mean:.2f}" + (f" ± {self.std:.2f}" if self.std is not None else "")
+
+
+def rise(curve: list[tuple[int, float]]) -> float | None:
+    """Dev exact match gained over the last 20 % of the run's updates (None: < 2 validations)."""
+    if len(curve) < 2:
+        return None
+    last_step, last = curve[-1]
+    before = [em for step, em in curve[:-1] if step <= 0.8 * last_step] or [curve[0][1]]
+    return last - before[-1]
+
+
+class Tables:
+    """The cells of both tables, per group, from the runs."""
+
+    def __init__(self, runs: list[RunResult]):
+        self.runs = runs
+        self.groups: list[Group] = sorted({r.group for r in runs}, key=Group.sort_key)
+        self.members = {g: [r for r in runs if r.group == g] for g in self.groups}
+
+    def table1_columns(self) -> list[tuple[str, str, str | None]]:
+        """(column id, title, paper column) of the Table 1 groups, in order."""
+        seen: dict[str, tuple[str, str, str | None]] = {}
+        for g in self.groups:
+            if g.table == 1 and g.column not in seen:
+                seen[g.column] = (g.column, g.title, g.paper_column)
+        return list(seen.values())
+
+    def cell1(self, column: str, row: str) -> Cell | None:
+        values = tuple(r.rows[row] for g in self.groups if g.table == 1 and g.column == column
+                       for r in self.members[g] if row in r.rows)
+        return Cell(values) if values else None
+
+    def cell2(self, group: Group, row: str) -> Cell | None:
+        values = tuple(r.rows[row] for r in self.members[group] if row in r.rows)
+        return Cell(values) if values else None
+
+    def table1_rows(self) -> list[str]:
+        """The paper's rows (its figures show even where we have none), then any others."""
+        rows = {row for r in self.runs if r.group.table == 1 for row in r.rows}
+        return list(TABLE1_ROWS) + sorted(rows - set(TABLE1_ROWS))
+
+    def group_rise(self, group: Group) -> float | None:
+        rises = [x for x in (rise(r.curve) for r in self.members[group]) if x is not None]
+        return statistics.fmean(rises) if rises else None
+
+    def column_rise(self, column: str, table: int, row: str) -> float | None:
+        """The rise of the group that fills this cell."""
+        for g in self.groups:
+            if g.table == table and g.column == column and any(row in r.rows for r in self.members[g]):
+                return self.group_rise(g)
+        return None
+
+
+def _paper1(paper_column: str | None, row: str):
+    return TABLE1.get(paper_column or "", {}).get(row)
+
+
+def _paper2(group: Group, row: str):
+    cut = int(group.variant[2:])
+    return TABLE2.get((group.paper_column or "", cut), {}).get(row)
+
+
+def _paper_text(figure) -> str:
+    if figure is None:
+        return ""
+    if isinstance(figure, str):
+        return f"paper {figure}"
+    return f"paper {figure[0]:.2f} ± {figure[1]:.2f}"
+
+
+def _cell_text(cell: Cell | None, figure) -> str:
+    ours = cell.text() if cell is not None else "–"
+    paper = _paper_text(figure)
+    return f"{ours}<br>{paper}" if paper else ours
+
+
+def _length_name(row: str) -> str:
+    return "≥ 18" if row == ">=18" else row
+
+
+def _rise_text(value: float | None) -> str:
+    if value is None:
+        return "too few validations to tell"
+    trend = "still rising" if value >= RISING_POINTS else "flat"
+    return f"dev curve {trend} ({value:+.2f} points over the last 20 % of updates)"
+
+
+# ------------------------------------------------------------------------------ markdown
+def render(runs: list[RunResult], curves_link: str | None) -> str:
+    tables = Tables(runs)
+    out = ["# The paper's tables, reproduced", "",
+           "Generated by `gscan-ros report` from each run's `results.json` and `metrics.jsonl` "
+           "(`gscan-ros experiment` writes them); do not edit by hand. Closed-loop exact match %. "
+           "Ours: mean ± sample standard deviation over the seeds (a value without ± is one seed); "
+           f"paper: {TABLE1_SOURCE} and {TABLE2_SOURCE} (mean ± std over three runs).", ""]
+    out += _table1(tables) + _table2(tables) + _budget(tables)
+    if curves_link:
+        out += ["## Learning curves", "", f"![dev exact match vs updates, one panel per column]({curves_link})", ""]
+    out += _notes(tables)
+    return "\n".join(out).rstrip("\n") + "\n"
+
+
+def _table1(t: Tables) -> list[str]:
+    columns = t.table1_columns()
+    if not columns:
+        return []
+    out = ["## Table 1: compositional splits A–H", "",
+           "| split | " + " | ".join(title for _, title, _ in columns) + " |",
+           "|---|" + "---:|" * len(columns)]
+    for row in t.table1_rows():
+        cells = [_cell_text(t.cell1(column, row), _paper1(paper, row)) for column, _, paper in columns]
+        out.append(f"| {row} | " + " | ".join(cells) + " |")
+    return out + [""]
+
+
+def _table2(t: Tables) -> list[str]:
+    groups = [g for g in t.groups if g.table == 2]
+    if not groups:
+        return []
+    out = ["## Table 2: split I, exact match by target length", "",
+           "Columns: the longest target length trained on. Row I: the whole target_lengths split.", "",
+           "| target length | " + " | ".join(g.label for g in groups) + " |",
+           "|---|" + "---:|" * len(groups)]
+    for row in LENGTH_ROWS:
+        cells = [t.cell2(g, row) for g in groups]
+        if row not in TABLE2_ROWS and all(c is None for c in cells):
+            continue
+        out.append(f"| {_length_name(row)} | " + " | ".join(_cell_text(c, _paper2(g, row)) for c, g in zip(cells, groups)) + " |")
+    return out + [""]
+
+
+def _budget(t: Tables) -> list[str]:
+    out = ["## Runs and budget", "",
+           "| column | seeds | updates | budget | best dev exact match | dev curve, last 20 % of updates |",
+           "|---|---|---:|---:|---:|---|"]
+    for g in t.groups:
+        runs = t.members[g]
+        updates = sorted({r.updates for r in runs})
+        budgets = sorted({r.max_updates for r in runs})
+        best = tuple(r.best_dev for r in runs if r.best_dev is not None)
+        trend = t.group_rise(g)
+        updates_text = str(updates[0]) if len(updates) == 1 else f"{updates[0]}–{updates[-1]}"
+        trend_text = "–" if trend is None else f"{'rising' if trend >= RISING_POINTS else 'flat'} {trend:+.2f}"
+        out.append(f"| {g.label} | {', '.join(str(r.seed) for r in runs)} | {updates_text} | "
+                   f"{'/'.join(str(b) for b in budgets)} | {Cell(best).text() if best else '–'} | {trend_text} |")
+    return out + [""]
+
+
+def _notes(t: Tables) -> list[str]:
+    out = ["## Notes", "", "### Further from the paper than the paper's std", ""]
+    flagged = []
+    for column, title, paper in t.table1_columns():
+        for row in t.table1_rows():
+            cell, figure = t.cell1(column, row), _paper1(paper, row)
+            if cell is not None and isinstance(figure, tuple) and abs(cell.mean - figure[0]) > figure[1]:
+                flagged.append(_flag(f"{title}, {row}", cell, figure, t.column_rise(column, 1, row)))
+    for g in (g for g in t.groups if g.table == 2):
+        for row in TABLE2_ROWS:
+            cell, figure = t.cell2(g, row), _paper2(g, row)
+            if cell is not None and isinstance(figure, tuple) and abs(cell.mean - figure[0]) > figure[1]:
+                flagged.append(_flag(f"{g.label}, length {_length_name(row)}", cell, figure, t.group_rise(g)))
+    out += flagged or ["None."]
+    out += ["", "### The paper's claims", ""]
+    out += [_ordered_claim(t, ("semantic", "attention+state", "state"), "attention-only > +Attention > State")]
+    out += _much_claim(t)
+    out += [_ordered_claim(t, ("semantic", "constituency"), "semantic > constituency"),
+            _ordered_claim(t, ("semantic", "dependency"), "semantic > dependency")]
+    return out + [""]
+
+
+def _flag(where: str, cell: Cell, figure: tuple[float, float], trend: float | None) -> str:
+    return (f"- {where}: ours {cell.text()} vs paper {figure[0]:.2f} ± {figure[1]:.2f} "
+            f"({cell.mean - figure[0]:+.2f}); {_rise_text(trend)}.")
+
+
+def _ordered_claim(t: Tables, columns: tuple[str, ...], claim: str) -> str:
+    """Columns strictly decreasing in the mean over the Table 1 rows they all have, and
+    how many of those rows keep the order."""
+    cells = {c: {row: t.cell1(c, row) for row in t.table1_rows()} for c in columns}
+    rows = [row for row in t.table1_rows() if all(cells[c][row] is not None for c in columns)]
+    missing = [COLUMN_TITLES[c] for c in columns if not any(cells[c].values())]
+    if missing or not rows:
+        return f"- {claim}: not checked, no results for {', '.join(missing) or 'a common row'}."
+    ours = [statistics.fmean(cells[c][row].mean for row in rows) for c in columns]
+    holds = all(a > b for a, b in zip(ours, ours[1:]))
+    row_wise = sum(all(cells[a][row].mean > cells[b][row].mean for a, b in zip(columns, columns[1:])) for row in rows)
+    paper_rows = [row for row in rows if all(row in TABLE1[c] for c in columns)]
+    paper = ""
+    if paper_rows:
+        means = [statistics.fmean(TABLE1[c][row][0] for row in paper_rows) for c in columns]
+        paper = f"; paper over {', '.join(paper_rows)}: {' > '.join(f'{m:.2f}' for m in means)}"
+    return (f"- {claim}: {'holds' if holds else 'does not hold'} — mean over {', '.join(rows)}: "
+            f"{' vs '.join(f'{COLUMN_TITLES[c]} {m:.2f}' for c, m in zip(columns, ours))}; "
+            f"the order holds row by row on {row_wise} of {len(rows)}{paper}.")
+
+
+def _much_claim(t: Tables) -> list[str]:
+    """Semantic ahead of seq2seq by more than MUCH_POINTS on B, C, every G row and split I
+    (lengths 16, 17, >= 18 with targets <= 15 in training)."""
+    pairs = []  # (row label, ours semantic, ours seq2seq, paper difference or None)
+    for row in [r for r in t.table1_rows() if r in ("B", "C") or r.startswith("G ")]:
+        a, b = t.cell1("semantic", row), t.cell1("seq2seq", row)
+        if a is not None and b is not None:
+            pa, pb = _paper1("semantic", row), _paper1("seq2seq", row)
+            pairs.append((row, a.mean, b.mean, pa[0] - pb[0] if pa and pb else None))
+    sem = next((g for g in t.groups if g.table == 2 and g.column == "semantic" and g.variant == "<=15"), None)
+    s2s = next((g for g in t.groups if g.table == 2 and g.column == "seq2seq" and g.variant == "<=15"), None)
+    for row in ("16", "17", ">=18"):
+        a, b = (t.cell2(sem, row) if sem else None), (t.cell2(s2s, row) if s2s else None)
+        if a is not None and b is not None:
+            pa, pb = _paper2(sem, row), _paper2(s2s, row)
+            paper = pa[0] - pb[0] if isinstance(pa, tuple) and isinstance(pb, tuple) else None
+            pairs.append((f"I length {_length_name(row)}", a.mean, b.mean, paper))
+    claim = f"compositional ≫ seq2seq on B, C, G, I (Semantic ahead by more than {MUCH_POINTS:.0f} points)"
+    if not pairs:
+        return [f"- {claim}: not checked, no Semantic and Seq2seq results on a common row."]
+    ahead = sum(a - b > MUCH_POINTS for _, a, b, _ in pairs)
+    out = [f"- {claim}: holds on {ahead} of {len(pairs)} rows" + (" — holds." if ahead == len(pairs) else ".")]
+    for row, a, b, paper in pairs:
+        ref = f" (paper {paper:+.2f})" if paper is not None else ""
+        out.append(f"  - {row}: {a:.2f} vs {b:.2f}, {a - b:+.2f}{ref}")
+    return out
+
+
+# ------------------------------------------------------------------------------ figure
+def plot_curves(runs: list[RunResult], path: Path) -> None:
+    """Dev exact match vs updates, one panel per column (group), one line per seed."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    tables = Tables(runs)
+    groups = tables.groups
+    ncols = min(4, len(groups))
+    nrows = math.ceil(len(groups) / ncols)
+    fig, axes = plt.subplots(nrows, ncols, figsize=(3.6 * ncols, 2.8 * nrows), squeeze=False, sharey=True)
+    for ax, group in zip(axes.flat, groups):
+        for run in tables.members[group]:
+            if run.curve:
+                ax.plot(*zip(*run.curve), marker=".", label=f"seed {run.seed}")
+        ax.set_title(group.label, fontsize=9)
+        ax.set_ylim(0, 100)
+        ax.set_xlabel("updates", fontsize=8)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, loc="lower right")
+    for ax in axes.flat[len(groups):]:
+        ax.axis("off")
+    for ax in axes[:, 0]:
+        ax.set_ylabel("dev exact match (%)", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90, metadata={"Software": None})
+    plt.close(fig)
+
+
+def write_report(dirs: list[Path], out: Path, curves: Path | None) -> list[RunResult]:
+    """Read the runs, write the markdown to `out` and the curves PNG to `curves`."""
+    runs = load_runs(dirs)
+    link = None if curves is None else Path(os.path.relpath(curves, out.parent)).as_posix()
+    text = render(runs, link)
+    if curves is not None:
+        plot_curves(runs, curves)
+    out.write_text(text)
+    return runs

@@ -1,0 +1,292 @@
+"""`gscan-ros experiment` and `gscan-ros report` (issue #14): a plan of tiny runs is trained,
+evaluated, skipped when done, resumed when killed, shared between workers; the report
+puts mean ± std over seeds beside the paper's figures, reproducibly."""
+import json
+import os
+import re
+import socket
+import subprocess
+from pathlib import Path
+
+import pytest
+import yaml
+
+from gscan_ros.cli import main
+from gscan_ros.cli.args import available_cpus
+from gscan_ros.training.experiment import load_plan, resolve_config
+from gscan_ros.training.paper_figures import TABLE1, TABLE2
+
+REPO = Path(__file__).resolve().parents[1]
+TINY = {"max_updates": 2, "batch_size": 16, "validate_every": 2, "checkpoint_every": 2, "log_every": 1,
+        "max_dev_examples": 8, "lexicon": "none",
+        "model": {"rnn_dim": 8, "rnn_layers": 1, "cnn_channels": 4, "att_dim": 4}}
+SPLITS = ["test", "visual"]
+
+
+def write_plan(path: Path, root: Path, defaults: dict = TINY, runs: list | None = None) -> Path:
+    plan = {
+        "results": str(root / "results"),
+        "data_root": str(root / "data"),
+        "defaults": defaults,
+        "evaluation": {"max_examples": 5},
+        "datasets": {"tiny": {"examples": 300, "seed": 0}},
+        "runs": runs or [
+            {"name": "semantic", "config": str(REPO / "configs/semantic.yaml"), "data": "tiny", "seeds": [0],
+             "splits": SPLITS},
+            {"name": "state", "config": str(REPO / "configs/semantic.yaml"), "data": "tiny", "seeds": [0],
+             "splits": SPLITS, "set": {"model.message": "state"}},
+        ],
+    }
+    path.write_text(yaml.safe_dump(plan, sort_keys=False))
+    return path
+
+
+def experiment(plan: Path, *extra: str) -> int:
+    return main(["experiment", str(plan), "--quiet", *extra])
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """The two-run plan, run once (in parallel where two CPUs are available)."""
+    root = tmp_path_factory.mktemp("experiment")
+    plan = write_plan(root / "plan.yaml", root)
+    assert experiment(plan, "--parallel", str(min(2, available_cpus()))) == 0
+    return root, plan
+
+
+def test_runner_generates_trains_and_evaluates_every_run(trained):
+    root, _ = trained
+    (data,) = (root / "data").iterdir()
+    assert (data / "recipe.json").is_file() and (data / "train" / "metadata.yaml").is_file()
+    assert (data / "generate.log").read_text().count("gscan-ros generate") == 1  # once for both runs
+    for name, column in (("semantic_s0", "semantic"), ("state_s0", "state")):
+        run = root / "results" / name
+        results = json.loads((run / "results.json").read_text())
+        assert results["column"] == column and results["seed"] == 0 and results["updates"] == 2
+        assert set(results["splits"]) == set(SPLITS) and results["evaluation"]["max_examples"] == 5
+        assert results["splits"]["test"]["examples"] == 5 and results["data"]["k_shot"] == 1
+        assert yaml.safe_load((run / "config.yaml").read_text())["seed"] == 0
+        assert not (run / ".lock").exists() and not (run / ".evaluation").exists()
+    state = yaml.safe_load((root / "results/state_s0/config.yaml").read_text())
+    assert state["model"]["message"] == "state"
+
+
+def test_rerun_skips_finished_runs_and_resumes_a_killed_one(trained, capsys):
+    root, plan = trained
+    killed, finished = root / "results/semantic_s0", root / "results/state_s0"
+    lines = (killed / "metrics.jsonl").read_text().splitlines()
+    assert json.loads(lines[-1])["event"] == "end"
+    (killed / "metrics.jsonl").write_text("\n".join(lines[:-1]) + "\n")  # killed after its last checkpoint
+    before = {p: p.stat().st_mtime_ns for p in finished.iterdir()}
+    capsys.readouterr()
+    assert experiment(plan, "--dry-run") == 0
+    status = capsys.readouterr().out
+    assert re.search(r"resume\s+semantic_s0\s+2/2", status) and re.search(r"done\s+state_s0", status)
+    assert experiment(plan) == 0
+    assert {p: p.stat().st_mtime_ns for p in finished.iterdir()} == before
+    events = [json.loads(line) for line in (killed / "metrics.jsonl").read_text().splitlines()]
+    assert [e["resumed"] for e in events if e["event"] == "start"] == [False, True]
+    assert events[-1]["event"] == "end" and json.loads((killed / "results.json").read_text())["updates"] == 2
+    assert "2 done, 0 failed, 0 left to others or stale" in capsys.readouterr().out
+
+
+def test_changed_recipe_marks_runs_stale_and_leaves_them(trained, tmp_path, capsys):
+    root, _ = trained
+    plan = write_plan(tmp_path / "plan.yaml", root, defaults={**TINY, "lr": 0.003})
+    before = (root / "results/state_s0/results.json").stat().st_mtime_ns
+    assert experiment(plan, "--dry-run") == 0
+    assert re.search(r"stale\s+state_s0 .*config changed: lr", capsys.readouterr().out)
+    assert experiment(plan) == 0
+    assert "0 done, 0 failed, 2 left to others or stale" in capsys.readouterr().out
+    assert (root / "results/state_s0/results.json").stat().st_mtime_ns == before
+
+
+def test_a_live_lock_means_running_and_a_dead_one_is_stale(tmp_path, capsys):
+    plan = write_plan(tmp_path / "plan.yaml", tmp_path)
+    live, dead = tmp_path / "results/semantic_s0", tmp_path / "results/state_s0"
+    gone = subprocess.Popen(["true"])
+    gone.wait()
+    for run, pid in ((live, os.getpid()), (dead, gone.pid)):
+        run.mkdir(parents=True)
+        (run / ".lock").write_text(json.dumps({"host": socket.gethostname(), "pid": pid, "child": None}))
+    assert experiment(plan, "--dry-run") == 0
+    out = capsys.readouterr().out
+    assert re.search(rf"running\s+semantic_s0 .*pid {os.getpid()}", out) and re.search(r"new\s+state_s0", out)
+
+
+def test_workers_partition_the_plan_in_seed_rounds(tmp_path, capsys):
+    config = str(REPO / "configs/semantic.yaml")
+    runs = [{"name": "a", "config": config, "data": "tiny", "seeds": [0, 1, 2]},
+            {"name": "b", "config": config, "data": "tiny", "seeds": [5, 6]}]
+    plan = load_plan(write_plan(tmp_path / "plan.yaml", tmp_path, runs=runs))
+    assert [r.name for r in plan.runs] == ["a_s0", "b_s5", "a_s1", "b_s6", "a_s2"]
+    shares = [[r.name for r in plan.share((i, 2))] for i in range(2)]
+    assert shares == [["a_s0", "a_s1", "a_s2"], ["b_s5", "b_s6"]]
+    assert experiment(tmp_path / "plan.yaml", "--dry-run", "--worker", "1/2") == 0
+    out = capsys.readouterr().out
+    assert out.startswith("worker 1/2:") and "2 runs: 0 done, 0 running, 2 left" in out and "a_s0" not in out
+
+
+BAD_PLANS = [
+    ({"results": "r", "colour": 1}, "unknown key colour"),
+    ({"runs": [{"name": "x", "config": "{config}", "data": "tiny", "seeds": ["a"]}]}, "runs[0].seeds"),
+    ({"runs": [{"name": "x", "config": "{config}", "data": "huge", "seeds": [0]}]}, "runs[0].data 'huge'"),
+    ({"runs": [{"name": "x", "config": "{config}", "data": "tiny"}]}, "runs[0].seeds is missing"),
+    ({"runs": [{"name": "x", "config": "nowhere.yaml", "data": "tiny", "seeds": [0]}]}, "runs[0].config"),
+    ({"runs": [{"name": "x", "config": "{config}", "data": "tiny", "seeds": [0], "splits": ["target_lengths"]}]},
+     "runs[0].splits"),
+    ({"datasets": {"tiny": {"k_shot": -1}}}, "datasets.tiny.k_shot"),
+    ({"datasets": {"tiny": {"examples": "many"}}}, "datasets.tiny.examples"),
+    ({"defaults": {"seed": 3}}, "defaults.seed"),
+    ({"defaults": {"learning_rate": 3}}, "learning_rate"),
+    ({"runs": [{"name": "x", "config": "{config}", "data": "tiny", "seeds": [0], "set": {"model.rnn_dim": -1}}]},
+     "run x_s0"),
+]
+
+
+@pytest.mark.parametrize("edit, names", BAD_PLANS, ids=[n for _, n in BAD_PLANS])
+def test_bad_plan_is_one_line_naming_the_key(tmp_path, capsys, edit, names):
+    path = write_plan(tmp_path / "plan.yaml", tmp_path)
+    plan = yaml.safe_load(path.read_text())
+    text = yaml.safe_dump({**plan, **edit}).replace("'{config}'", str(REPO / "configs/semantic.yaml"))
+    path.write_text(text)
+    assert experiment(path, "--dry-run") == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and names in err[0] and err[0].startswith("gscan-ros experiment: error: plan")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["plan.yaml"]
+
+
+def test_paper_plan_covers_every_column_with_one_recipe():
+    plan = load_plan(REPO / "configs/experiments/paper.yaml")
+    seeds: dict[tuple, set] = {}
+    for run in plan.runs:
+        seeds.setdefault((run.column, run.entry), set()).add(run.seed)
+    assert len({resolve_config(plan, run).max_updates for run in plan.runs}) == 1  # one budget
+    columns = {column for column, _ in seeds}
+    assert columns == {"seq2seq", "state", "attention+state", "constituency", "dependency", "semantic",
+                       "semantic_minmax", "semantic_add"}
+    assert all(len(s) == 3 for (column, _), s in seeds.items() if column == "semantic")
+    assert {r.data.k_shot for r in plan.runs if r.data.split_kind == "compositional"} == {1, 5, 11, 51}
+    assert {r.entry for r in plan.runs[:15]} == {entry for _, entry in seeds}  # every column's first seed first
+    minmax = next(r for r in plan.runs if r.column == "semantic_minmax")
+    assert resolve_config(plan, minmax).model["size_map"] == "minmax"
+
+
+# ------------------------------------------------------------------------------ report
+def fake_run(root: Path, name: str, column: str, seed: int, splits: dict, *, k_shot: int = 1, kind="compositional",
+             cut: int = 0, curve=((500, 10.0), (1000, 30.0)), paper: str | None = None) -> None:
+    run = root / name
+    run.mkdir(parents=True)
+    doc = {"run": name, "column": column, "title": column.title(), "paper_column": paper or column, "seed": seed,
+           "updates": curve[-1][0], "max_updates": 1000, "best_dev_exact_match": max(v for _, v in curve),
+           "max_train_target_length": cut, "data": {"split_kind": kind, "k_shot": k_shot}, "splits": splits}
+    (run / "results.json").write_text(json.dumps(doc))
+    (run / "metrics.jsonl").write_text("".join(json.dumps({"event": "validation", "step": s, "dev_exact_match": v})
+                                               + "\n" for s, v in curve))
+
+
+def split(letter: str, em: float, by_length: dict | None = None) -> dict:
+    return {"letter": letter, "examples": 10, "exact_match": em, "token_accuracy": em,
+            "by_target_length": by_length or {}}
+
+
+@pytest.fixture
+def results(tmp_path):
+    root = tmp_path / "results"
+    fake_run(root, "semantic_s0", "semantic", 0, {"test": split("A", 90.0), "adverb_1": split("G", 1.0)})
+    fake_run(root, "semantic_s1", "semantic", 1, {"test": split("A", 94.0), "adverb_1": split("G", 2.0)},
+             curve=((500, 10.0), (1000, 10.5)))
+    fake_run(root, "seq2seq_s0", "seq2seq", 0, {"test": split("A", 97.0), "visual": split("C", 20.0)})
+    fake_run(root, "state_s0", "state", 0, {"test": split("A", 50.0)})
+    fake_run(root, "attention_state_s0", "attention+state", 0, {"test": split("A", 70.0)})
+    fake_run(root, "semantic_k10_s0", "semantic", 0, {"test": split("A", 10.0), "adverb_1": split("G", 40.0)},
+             k_shot=11)
+    lengths = {"test": split("A", 99.0, {"14": {"examples": 5, "exact_match": 100.0},
+                                         "15": {"examples": 4, "exact_match": 75.0}}),
+               "target_lengths": split("I", 40.0, {"16": {"examples": 2, "exact_match": 50.0},
+                                                   "18": {"examples": 3, "exact_match": 0.0},
+                                                   "20": {"examples": 1, "exact_match": 100.0}})}
+    fake_run(tmp_path / "worker1", "semantic_len15_s0", "semantic", 0, lengths, kind="length", cut=15)
+    return [root, tmp_path / "worker1"]
+
+
+def report(dirs, out: Path, *extra) -> int:
+    return main(["report", *map(str, dirs), "--out", str(out), *extra])
+
+
+def test_report_puts_mean_and_std_beside_the_paper(results, tmp_path):
+    out = tmp_path / "tables.md"
+    assert report(results, out) == 0
+    text = out.read_text()
+    a_row = next(line for line in text.splitlines() if line.startswith("| A |"))
+    # columns in the paper's order: Seq2seq, State, +Attention, Semantic
+    assert a_row == ("| A | 97.00<br>paper 97.69 ± 0.22 | 50.00<br>paper 49.83 ± 5.05 | 70.00<br>paper 96.06 ± 1.40 "
+                     "| 92.00 ± 2.83<br>paper 96.73 ± 0.58 |")
+    assert "| G k=1 | –<br>paper 0.00 ± 0.00 | –<br>paper 3.38 ± 3.66 | –<br>paper 1.79 ± 0.69 " \
+           "| 1.50 ± 0.71<br>paper 1.14 ± 0.30 |" in text
+    assert "| G k=10 | –<br>paper 2.04 ± 0.95 | –<br>paper 8.48 ± 4.72 | –<br>paper 34.28 ± 6.59 " \
+           "| 40.00<br>paper 36.91 ± 5.13 |" in text  # k_shot 11 is the paper's k=10; its A is not Table 1's
+    assert "| 15 | 75.00<br>paper 92.06 ± 1.94 |" in text and "| ≥ 18 | 25.00<br>paper 53.67 ± 4.00 |" in text
+    assert "| Semantic | 0, 1 | 1000 | 1000 | 20.25 ± 13.79 | rising +10.25 |" in text
+    assert "- Semantic, A: ours 92.00 ± 2.83 vs paper 96.73 ± 0.58 (-4.73); dev curve still rising" in text
+    assert "- attention-only > +Attention > State: holds — mean over A" in text
+    assert "- semantic > constituency: not checked, no results for Constituency." in text
+    assert "![dev exact match vs updates, one panel per column](tables_curves.png)" in text
+    assert (tmp_path / "tables_curves.png").read_bytes().startswith(b"\x89PNG")
+
+
+def test_report_is_byte_identical_and_refuses_to_overwrite(results, tmp_path, capsys):
+    first, second = tmp_path / "one.md", tmp_path / "two.md"
+    assert report(results, first, "--no-curves") == 0 and report(results[::-1], second, "--no-curves") == 0
+    assert first.read_bytes() == second.read_bytes()
+    assert report(results, first, "--no-curves") == 1
+    assert "--overwrite" in capsys.readouterr().err
+    assert report([results[0], results[0]], tmp_path / "three.md", "--no-curves") == 1  # a run found twice
+    assert "is in both" in capsys.readouterr().err
+
+
+def test_committed_tables_regenerate_exactly(tmp_path, monkeypatch):
+    committed = REPO / "docs/paper_tables.md"
+    if not (REPO / "results/paper").is_dir() or not committed.is_file():
+        pytest.skip("no committed paper results yet")
+    monkeypatch.chdir(REPO)
+    out = tmp_path / "paper_tables.md"
+    assert report([Path("results/paper")], out, "--curves", str(tmp_path / "paper_tables_curves.png")) == 0
+    assert out.read_text() == committed.read_text()
+
+
+def _tex_figure(cell: str):
+    cell = re.sub(r"\\phantom\{[^}]*\}|\\textbf\{|[}$]", "", cell).strip()
+    if cell == "-":
+        return None
+    match = re.fullmatch(r"([\d.]+)\s*\\pm\s*([\d.]+)", cell)
+    return (float(match[1]), float(match[2])) if match else cell
+
+
+def test_paper_figures_match_the_tex():
+    tex = Path("/work/shared/paper/kuo2021_compositional_gscan.tex")
+    if not tex.is_file():
+        pytest.skip("the paper's source is not on this machine")
+    text = tex.read_text()
+    columns = {0: "seq2seq", 4: "state", 5: "attention+state", 6: "constituency", 7: "dependency", 8: "semantic"}
+    seen = 0
+    for line in text.splitlines():
+        cells = [c.strip() for c in line.rstrip("\\ ").split("&")]
+        head = re.sub(r"\\phantom\{G \}", "G ", cells[0])
+        if len(cells) != 10 or not re.fullmatch(r"[A-H]|G k=\d+", head):
+            continue
+        for i, column in columns.items():
+            assert TABLE1[column].get(head) == _tex_figure(cells[i + 1]), (head, column)
+            seen += 1
+    assert seen == 11 * 6
+    lengths = {"15": "15", "16": "16", "17": "17", "\\geq 18": ">=18"}
+    keys = [("seq2seq", 15), ("semantic", 15), ("semantic", 14), ("semantic", 13)]
+    found = 0
+    for line in text.splitlines():
+        cells = [c.strip() for c in line.rstrip("\\ ").split("&")]
+        head = re.sub(r"\\phantom\{[^}]*\}|\$", "", cells[0]).strip()
+        if len(cells) == 5 and head in lengths:
+            for key, cell in zip(keys, cells[1:]):
+                assert TABLE2[key][lengths[head]] == _tex_figure(cell), (head, key)
+            found += 1
+    assert found == 4

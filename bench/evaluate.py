@@ -1,7 +1,7 @@
 """Closed-loop evaluation throughput: batched (many live episodes per forward) vs batch 1.
 
     .venv/bin/python bench/evaluate.py [--checkpoint CKPT] [--data DIR] [--episodes 512] [--threads 2]
-                                       [--max-steps 120]
+                                       [--max-steps 120] [--device cpu|cuda|auto]
 
 Defaults: the shipped model and 3000 freshly generated candidate examples (seed 0);
 episodes from the `test` split. The model decides when episodes stop, so a trained
@@ -17,6 +17,8 @@ import time
 
 from _data import dataset_or_generated
 
+from gscan_ros.model.runtime import DEVICES
+
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -28,6 +30,7 @@ def main() -> None:
     ap.add_argument("--batch-size", type=int, default=1024)
     ap.add_argument("--threads", type=int, default=2, help="torch intra-op threads")
     ap.add_argument("--max-steps", type=int, default=120, help="decoding cap per episode (+1 for EOS)")
+    ap.add_argument("--device", default="cpu", choices=DEVICES, help="where the network runs")
     args = ap.parse_args()
 
     from gscan_ros.data.io import iter_episodes
@@ -36,7 +39,7 @@ def main() -> None:
     from gscan_ros.training.evaluate import evaluate_episodes
 
     configure_torch(args.threads)
-    policy = Policy.from_checkpoint(args.checkpoint)
+    policy = Policy.from_checkpoint(args.checkpoint, device=args.device)
     with dataset_or_generated(args.data, examples=3000) as data:
         episodes = []
         for ep in iter_episodes(data, [args.split]):
@@ -54,7 +57,7 @@ def main() -> None:
         rates[label] = len(eps) / seconds
         print(f"{label:8s} {rates[label]:8.1f} episodes/s  ({steps / seconds:.0f} decoding steps/s, "
               f"{steps / len(eps):.1f} steps/episode, {len(eps)} episodes, "
-              f"batch {batch}, exact match {res.exact_match:.1f} %, threads {args.threads})")
+              f"batch {batch}, exact match {res.exact_match:.1f} %, threads {args.threads}, {policy.device})")
     print(f"batched / batch-1 ratio: {rates['batched'] / rates['batch 1']:.1f}")
     print(f"peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
 

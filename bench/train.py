@@ -1,6 +1,7 @@
 """Training throughput: examples/s and peak RSS, mixed batches vs the original one-command batches.
 
     .venv/bin/python bench/train.py [--data DIR] [--config FILE] [--updates 10] [--warmup 2] [--threads 2]
+                                    [--device cpu|cuda|auto]
     .venv/bin/python bench/train.py --data data_gen/len --config configs/length.yaml   # split I, 12x12
 
 Without --data, a dataset of 6000 candidate examples is generated into a temp dir
@@ -20,19 +21,22 @@ import time
 
 from _data import dataset_or_generated
 
+from gscan_ros.model.runtime import DEVICES
+
 
 def measure(data: str, mode: str, updates: int, warmup: int, threads: int, batch_size: int,
-            config: str | None = None) -> dict:
+            config: str | None = None, device: str = "cpu") -> dict:
     import numpy as np
     import torch
 
     from gscan_ros.language.registry import get_parser
-    from gscan_ros.model.runtime import configure_torch
+    from gscan_ros.model.runtime import configure_torch, resolve_device
     from gscan_ros.training.batches import EpisodeStore, batch_order
     from gscan_ros.training.config import TrainConfig
     from gscan_ros.training.trainer import iter_split, keep_freed_memory, make_lexicon, new_model
 
     configure_torch(threads)
+    dev = resolve_device(device)
     keep_freed_memory()
     torch.manual_seed(0)
     lexicon = make_lexicon("wordnet")
@@ -40,7 +44,7 @@ def measure(data: str, mode: str, updates: int, warmup: int, threads: int, batch
     t0 = time.time()
     store = EpisodeStore(iter_split(data, "train"), parser)
     cache_s = time.time() - t0
-    model = new_model(TrainConfig.load(config), parser, lexicon, store).train()
+    model = new_model(TrainConfig.load(config), parser, lexicon, store).to(dev).train()
     opt = torch.optim.Adam(model.parameters(), lr=1e-3)
     order = batch_order(store, batch_size, mode, np.random.default_rng(0))
     order = sorted(order, key=len, reverse=True)  # full batches first (per_command: the original's 200-episode chunks)
@@ -53,11 +57,13 @@ def measure(data: str, mode: str, updates: int, warmup: int, threads: int, batch
         opt.zero_grad()
         out.loss.backward()
         opt.step()
+        if dev.type == "cuda":  # the time of the work, not of queueing it
+            torch.cuda.synchronize(dev)
         if i >= warmup:
             elapsed += time.time() - start
             examples += len(ids)
             steps += int(store.lengths[ids].sum())
-    return {"mode": mode, "threads": threads, "updates": updates, "examples": examples,
+    return {"mode": mode, "device": str(dev), "threads": threads, "updates": updates, "examples": examples,
             "examples_per_s": examples / elapsed, "steps_per_s": steps / elapsed,
             "mean_batch": examples / updates, "mean_episode_steps": steps / examples,
             "train_episodes": len(store), "state_cache_s": round(cache_s, 2),
@@ -73,23 +79,24 @@ def main() -> None:
     ap.add_argument("--batch-size", type=int, default=200)
     ap.add_argument("--config", help="training config whose model is measured (default: the built-in defaults; "
                                      "configs/length.yaml for split I data)")
+    ap.add_argument("--device", default="cpu", choices=DEVICES, help="where the network runs")
     ap.add_argument("--mode", choices=("mixed", "per_command"), help="(internal) measure one mode in this process")
     args = ap.parse_args()
     if args.mode:
         print(json.dumps(measure(args.data, args.mode, args.updates, args.warmup, args.threads, args.batch_size,
-                                 args.config)))
+                                 args.config, args.device)))
         return
     with dataset_or_generated(args.data, examples=6000) as data:
         results = {}
         for mode in ("mixed", "per_command"):
             cmd = [sys.executable, __file__, "--data", data, "--mode", mode, "--updates", str(args.updates),
                    "--warmup", str(args.warmup), "--threads", str(args.threads), "--batch-size", str(args.batch_size),
-                   *(["--config", args.config] if args.config else [])]
+                   "--device", args.device, *(["--config", args.config] if args.config else [])]
             results[mode] = json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout)
     for mode, r in results.items():
         print(f"{mode:12s} {r['examples_per_s']:7.1f} examples/s  ({r['steps_per_s']:.0f} steps/s, mean batch "
               f"{r['mean_batch']:.0f}, {r['mean_episode_steps']:.1f} steps/episode)  peak RSS {r['peak_rss_mb']:.0f} MB"
-              f"  [threads {r['threads']}, state cache {r['state_cache_s']} s for {r['train_episodes']} episodes]")
+              f"  [{r['device']}, threads {r['threads']}, state cache {r['state_cache_s']} s for {r['train_episodes']} episodes]")
     ratio = results["mixed"]["examples_per_s"] / results["per_command"]["examples_per_s"]
     print(f"mixed / per_command throughput ratio: {ratio:.2f}")
 

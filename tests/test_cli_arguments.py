@@ -71,6 +71,7 @@ BAD_ARGUMENTS = [
     ("train --data {data} --config {yaml_list}", "batch_size"),
     ("train --data {data} --config {yaml_model_list}", "model"),
     ("train --data {data} --config {yaml_latin1}", "UTF-8"),
+    ("train --data {data} --device tpu", "--device"),
     # evaluate
     ("evaluate --data {missing}", "--data"),
     ("evaluate --data {data} --checkpoint {missing}", "--checkpoint"),
@@ -79,6 +80,7 @@ BAD_ARGUMENTS = [
     ("evaluate --data {data} --threads -4", "--threads"),
     ("evaluate --data {data} --seed -1", "--seed"),
     ("evaluate --data {data} --out {file}", "--out"),
+    ("evaluate --data {data} --device tpu", "--device"),
     # experiment
     ("experiment {missing}", "PLAN"),
     ("experiment {file}", "mapping"),
@@ -103,6 +105,7 @@ BAD_ARGUMENTS = [
     ("explain --max-columns 1 --out {tmp}/a.png", "--max-columns"),
     ("explain --metrics --data {data} --max-examples -1", "--max-examples"),
     ("explain --out {png}", "--overwrite"),
+    ("explain --out {tmp}/a.png --device gpu", "--device"),
     # replay
     ("replay {missing}", "metadata.yaml"),
     ("replay {data} --max-episodes 0", "--max-episodes"),
@@ -120,6 +123,9 @@ BAD_ARGUMENTS = [
     ("bringup --index -1", "--index"),
     ("bringup --seed -2", "--seed"),
 ]
+if not torch.cuda.is_available():  # CI: a GPU asked for and not there
+    BAD_ARGUMENTS += [(f"{command} --device cuda", "no CUDA GPU") for command in
+                      ("train --data {data}", "evaluate --data {data}", "explain --out {tmp}/a.png")]
 
 
 @pytest.fixture

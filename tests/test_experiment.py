@@ -156,6 +156,16 @@ def test_bad_plan_is_one_line_naming_the_key(tmp_path, capsys, edit, names):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["plan.yaml"]
 
 
+def test_only_selects_entries_or_runs_and_names_unknown_ones():
+    from gscan_ros.training.experiment import PlanError
+
+    plan = load_plan(REPO / "configs/experiments/paper.yaml")
+    assert [r.name for r in plan.share(None, ("semantic_len15", "seq2seq_s0"))] == [
+        "seq2seq_s0", "semantic_len15_s0", "semantic_len15_s1", "semantic_len15_s2"]
+    with pytest.raises(PlanError, match="'nope'"):
+        plan.share(None, ("nope",))
+
+
 def test_paper_plan_covers_every_column_with_one_recipe():
     plan = load_plan(REPO / "configs/experiments/paper.yaml")
     seeds: dict[tuple, set] = {}

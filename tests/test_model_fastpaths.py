@@ -215,3 +215,4 @@ def test_all_steps_at_once_matches_step_by_step(quantum, size_map):
         a = torch.zeros_like(_) if a is None else a
         b = torch.zeros_like(_) if b is None else b
         torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-4, msg=name)
+

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Callable
 
 from gscan_ros.errors import GscanError
+from gscan_ros.model.runtime import DEVICES
 
 
 class ArgumentParser(argparse.ArgumentParser):
@@ -65,6 +66,12 @@ def float_in(low: float, high: float, *, low_open: bool = False, high_open: bool
 
 positive_int = int_in(1)
 nonnegative_int = int_in(0)
+
+
+def add_device_argument(parser: argparse.ArgumentParser) -> None:
+    """`--device auto|cpu|cuda` (default cpu; under torchrun, cuda means each process's own GPU)."""
+    parser.add_argument("--device", choices=DEVICES, default="cpu",
+                        help="where the network runs: cpu (default), cuda, or auto (cuda if torch sees a GPU)")
 
 
 def positive_float(text: str) -> float:

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import argparse
 
-from gscan_ros.cli.args import existing_file, existing_path, nonnegative_int, output_dir, positive_int
+from gscan_ros.cli.args import add_device_argument, existing_file, existing_path, nonnegative_int, output_dir, positive_int
 
 EVAL_SPLITS = ("test", "visual_easier", "visual", "situational_1", "situational_2", "contextual",
                "adverb_1", "adverb_2", "target_lengths")
@@ -17,7 +17,9 @@ def register(subparsers) -> None:
         "episodes). Writes results.json, results.md and predictions.json (gSCAN prediction format; "
         "per-word attention maps with --attention). Split letters: A test, B visual_easier, C visual, D situational_1, "
         "E situational_2, F contextual, G adverb_1, H adverb_2, I target_lengths. For G at k = 5/10/50, "
-        "train models on data made with `gscan-ros generate --k-shot K` and evaluate each.",
+        "train models on data made with `gscan-ros generate --k-shot K` and evaluate each. Under "
+        "`torchrun --nproc_per_node N -m gscan_ros.cli evaluate ...` the N processes share the batches and "
+        "rank 0 writes the same files one process would (docs/scaling.md).",
     )
     p.add_argument("--checkpoint", type=existing_file, metavar="CKPT",
                    help="checkpoint file (default: the shipped model)")
@@ -34,6 +36,7 @@ def register(subparsers) -> None:
                    help="store every word's attention map per step in predictions.json (large: ~85 kB per episode)")
     p.add_argument("--threads", type=nonnegative_int, default=0, help="torch threads (0 = torch default)")
     p.add_argument("--seed", type=nonnegative_int, default=0, help="seed of the --max-examples subset")
+    add_device_argument(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -41,16 +44,40 @@ def register(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     import time
 
-    import numpy as np
-
-    from gscan_ros.errors import DatasetFormatError
     from gscan_ros.model.policy import Policy, default_checkpoint_path
     from gscan_ros.model.runtime import configure_torch
+    from gscan_ros.training.distributed import joined
     from gscan_ros.training.evaluate import evaluate_episodes
     from gscan_ros.training.report import markdown_table, write_reports
 
     configure_torch(args.threads)
-    policy = Policy.from_checkpoint(args.checkpoint)
+    # The ranks only exchange predictions (Python objects): gloo, whatever the device.
+    with joined(args.device, backend="gloo") as ranks:
+        policy = Policy.from_checkpoint(args.checkpoint, device=ranks.device)
+        episodes = _selected_episodes(args)
+        start = time.time()
+        result = evaluate_episodes(policy, episodes, batch_size=args.batch_size, ranks=ranks,
+                                   record_attention=args.attention and not args.no_predictions,
+                                   progress=not args.quiet and ranks.is_main)
+    if result is None:  # not rank 0: rank 0 has every prediction and writes the reports
+        return 0
+    seconds = time.time() - start
+    meta = {"checkpoint": str(args.checkpoint or default_checkpoint_path()), "parser": policy.parser_name,
+            "data": str(args.data), "max_examples": args.max_examples, "episodes": len(episodes),
+            "seconds": round(seconds, 2), "episodes_per_s": round(len(episodes) / max(seconds, 1e-9), 1),
+            "title": f"closed-loop evaluation of {args.checkpoint or 'the shipped model'}"}
+    write_reports(args.out, result, meta, predictions=not args.no_predictions)
+    print(markdown_table(result.summary()), end="")
+    print(f"{len(episodes)} episodes in {seconds:.1f} s; results in {args.out}/")
+    return 0
+
+
+def _selected_episodes(args: argparse.Namespace) -> list:
+    """The episodes of the splits asked for, each split cut to a seeded --max-examples subset."""
+    import numpy as np
+
+    from gscan_ros.errors import DatasetFormatError
+
     by_split: dict[str, list] = {}
     for ep in _episodes(args.data, args.splits):
         by_split.setdefault(ep.split, []).append(ep)
@@ -62,18 +89,7 @@ def run(args: argparse.Namespace) -> int:
             pick = np.random.default_rng([args.seed, len(eps)]).choice(len(eps), args.max_examples, replace=False)
             eps = [eps[i] for i in sorted(pick)]
         episodes += eps
-    start = time.time()
-    result = evaluate_episodes(policy, episodes, batch_size=args.batch_size,
-                               record_attention=args.attention and not args.no_predictions, progress=not args.quiet)
-    seconds = time.time() - start
-    meta = {"checkpoint": str(args.checkpoint or default_checkpoint_path()), "parser": policy.parser_name,
-            "data": str(args.data), "max_examples": args.max_examples, "episodes": len(episodes),
-            "seconds": round(seconds, 2), "episodes_per_s": round(len(episodes) / max(seconds, 1e-9), 1),
-            "title": f"closed-loop evaluation of {args.checkpoint or 'the shipped model'}"}
-    write_reports(args.out, result, meta, predictions=not args.no_predictions)
-    print(markdown_table(result.summary()), end="")
-    print(f"{len(episodes)} episodes in {seconds:.1f} s; results in {args.out}/")
-    return 0
+    return episodes
 
 
 def _episodes(path: str, splits: list[str] | None):

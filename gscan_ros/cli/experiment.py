@@ -39,6 +39,8 @@ def register(subparsers) -> None:
                    help="torch threads per run (default: 1); N x T must fit the available CPUs")
     p.add_argument("--worker", type=worker_share, metavar="I/N",
                    help="take only runs whose index %% N == I, one at a time")
+    p.add_argument("--only", nargs="+", default=(), metavar="NAME",
+                   help="only these runs: runs[] entry names (every seed) or run names such as semantic_s1")
     p.add_argument("--dry-run", action="store_true", help="print what is done, running and left; change nothing")
     p.add_argument("--restart-stale", action="store_true",
                    help="retrain from scratch runs whose config.yaml no longer matches the plan (replaces their files)")
@@ -62,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
         raise GscanError("--worker runs one run at a time; give each worker its own machine or CPUs "
                          "instead of --parallel")
     plan = load_plan(args.plan, args.results, args.data_root)
-    runner = Runner(plan, parallel=args.parallel, threads=args.threads, worker=args.worker,
+    runner = Runner(plan, parallel=args.parallel, threads=args.threads, worker=args.worker, only=tuple(args.only),
                     restart_stale=args.restart_stale, progress=not args.quiet, echo=tqdm.write)
     who = f"worker {args.worker[0]}/{args.worker[1]}: " if args.worker else ""
     print(f"{who}plan {plan.path} -> {plan.results}/")

@@ -18,6 +18,7 @@ import argparse
 import json
 
 from gscan_ros.cli.args import (
+    add_device_argument,
     existing_file,
     existing_path,
     int_in,
@@ -66,6 +67,7 @@ def register(subparsers) -> None:
                         "default: 1000)")
     p.add_argument("--batch-size", type=positive_int, default=512, help="--metrics: episodes per batch (default: 512)")
     p.add_argument("--threads", type=nonnegative_int, default=0, help="torch threads (0 = torch default)")
+    add_device_argument(p)
     p.set_defaults(func=run)
 
 
@@ -149,7 +151,7 @@ def _figure(args: argparse.Namespace) -> int:
     from gscan_ros.training.figures import figure_rgb, panel_titles, save_figure, step_figure
     from gscan_ros.world.render import save_gif
 
-    policy = Policy.from_checkpoint(args.checkpoint)
+    policy = Policy.from_checkpoint(args.checkpoint, device=args.device)
     command, situation, _ = _setup(args, policy)
     gif = args.gif or args.out.suffix.lower() == ".gif"
     tr = trace(policy, situation, command, until=None if gif else args.step)
@@ -183,7 +185,7 @@ def _progression(args: argparse.Namespace) -> int:
     paths = evenly(snapshots(args.progression), args.max_columns)
     columns, graph = [], None
     for i, (update, path) in enumerate(paths):
-        policy = Policy.from_checkpoint(path)
+        policy = Policy.from_checkpoint(path, device=args.device)
         if i == 0:
             command, situation, actions = _setup(args, policy)
             if args.step and actions is None:
@@ -216,11 +218,11 @@ def _metrics(args: argparse.Namespace) -> int:
     episodes = _metric_episodes(args)
     if args.progression:
         paths = evenly(snapshots(args.progression), args.max_columns)
-        rows = progression_metrics(paths, episodes, args.batch_size)
+        rows = progression_metrics(paths, episodes, args.batch_size, device=args.device)
         print(f"{len(episodes)} episodes of {args.data}, snapshots of {args.progression}:")
         print(progression_table(rows), end="")
         return 0
-    policy = Policy.from_checkpoint(args.checkpoint)
+    policy = Policy.from_checkpoint(args.checkpoint, device=args.device)
     summary = summarize(step0_readings(policy, episodes, args.batch_size))
     print(f"{_model_name(args, policy)} on {args.data} (step 0):")
     print(metrics_table(summary), end="")

@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from gscan_ros.cli.args import existing_file, existing_path, output_dir
+from gscan_ros.cli.args import add_device_argument, existing_file, existing_path, output_dir
 
 
 def register(subparsers) -> None:
@@ -12,7 +12,9 @@ def register(subparsers) -> None:
         "train",
         help="train a model on a generated dataset",
         description="Teacher-forced training with periodic closed-loop validation. Settings come from "
-        "a YAML config (fields of TrainConfig, model settings under 'model:') and --set overrides.",
+        "a YAML config (fields of TrainConfig, model settings under 'model:') and --set overrides. "
+        "Under `torchrun --nproc_per_node N -m gscan_ros.cli train ...` the N processes train one model "
+        "(DistributedDataParallel, each a shard of every batch; docs/scaling.md).",
     )
     p.add_argument("--config", type=existing_file, metavar="FILE",
                    help="YAML training config (default: built-in defaults)")
@@ -26,16 +28,20 @@ def register(subparsers) -> None:
     mode.add_argument("--resume", action="store_true", help="continue from RUN_DIR/last.pt")
     mode.add_argument("--overwrite", action="store_true",
                       help="replace the run files already in RUN_DIR (refused without this flag)")
+    add_device_argument(p)
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from gscan_ros.training.config import TrainConfig
+    from gscan_ros.training.distributed import joined
     from gscan_ros.training.trainer import train
 
     cfg = TrainConfig.load(args.config, args.overrides)
-    result = train(cfg, str(args.data), args.out, resume=args.resume, overwrite=args.overwrite,
-                   progress=not args.quiet)
-    print(json.dumps(result, indent=2))
+    with joined(args.device) as ranks:
+        result = train(cfg, str(args.data), args.out, resume=args.resume, overwrite=args.overwrite,
+                       progress=not args.quiet, device=ranks.device)
+        if ranks.is_main:
+            print(json.dumps(result, indent=2))
     return 0

@@ -61,7 +61,7 @@ def checkpoint_dict(model: nn.Module, *, parser: str, lexicon: Lexicon, step: in
         "vocabulary": model_vocabulary(model),
         "lexicon": lexicon.to_dict(),
         "parser": parser,
-        "state_dict": {k: v.detach().clone() for k, v in model.state_dict().items()},
+        "state_dict": {k: v.detach().to("cpu", copy=True) for k, v in model.state_dict().items()},  # CPU, whatever the device
         "step": int(step),
         "metrics": dict(metrics),
         **training_state,

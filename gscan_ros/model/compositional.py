@@ -28,6 +28,8 @@ matrix assembled from the conv weights once per call. `VisualEncoder.dense` is t
 """
 from __future__ import annotations
 
+import copy
+import dataclasses
 import math
 from dataclasses import asdict, dataclass, fields
 from typing import Iterable, Sequence
@@ -44,7 +46,6 @@ from gscan_ros.world.types import GRID_SIZE, NUM_CHANNELS, SUPPORTED_GRID_SIZES,
 MESSAGES = ("attention", "state", "attention+state")
 ATTENTION_STATES = ("broadcast", "add")
 SIZE_MAPS = ("softmax", "minmax")
-SCORE_INITS = ("uniform", "positive")
 
 
 # --------------------------------------------------------------------------- config
@@ -100,11 +101,6 @@ class ModelConfig(DictConfig):
     attention (this project's default), or 'minmax': the min-max normalised map of the
     overlap loss, as the original code passes it (GSCAN_SPEC §8.6, quirk Q16) and as the
     published numbers were produced."""
-    att_score_init: str = "uniform"
-    """Initial weights of each attention's score layer (ReLU units -> cell logit):
-    'uniform' U(-1/sqrt(fan_in), +) as torch's Linear (the original), or 'positive', the
-    same magnitudes made non-negative, so a cell's logit grows with its active units
-    (a training lever, docs/model.md)."""
     num_actions: int = len(Action)
     """Output classes: the six gSCAN actions plus EOS, ids = `Action` values."""
 
@@ -115,8 +111,6 @@ class ModelConfig(DictConfig):
             raise ValueError(f"attention_state must be one of {ATTENTION_STATES}, got {self.attention_state!r}")
         if self.size_map not in SIZE_MAPS:
             raise ValueError(f"size_map must be one of {SIZE_MAPS}, got {self.size_map!r}")
-        if self.att_score_init not in SCORE_INITS:
-            raise ValueError(f"att_score_init must be one of {SCORE_INITS}, got {self.att_score_init!r}")
         if self.attention_state == "add" and not self.uses_attention:
             raise ValueError("attention_state='add' needs attention maps; message='state' has none")
         # Sizes come from YAML and checkpoints: a list, a float or a negative fails here, not in torch.
@@ -296,6 +290,8 @@ class VisualEncoder(nn.Module):
         """[cells*C, cells*F]: row (cell q, channel k) -> contribution to every (cell p, feature o)."""
         bank = self._kernel_bank()  # [F, C, 2g-1, 2g-1]
         canvas = bank.permute(2, 3, 1, 0).reshape(-1, bank.shape[1] * bank.shape[0])  # [position, (k, o)]
+        if self._placement.device != canvas.device:  # not a buffer (no state_dict entry): moved on first use
+            self._placement = self._placement.to(canvas.device)
         w = torch.sparse.mm(self._placement, canvas)  # [(q, p), (k, o)]
         cells, C = self.cfg.cells, self.cfg.in_channels
         return w.view(cells, cells, C, -1).permute(0, 2, 1, 3).reshape(cells * C, -1)
@@ -332,13 +328,13 @@ class VisualEncoder(nn.Module):
         n = offsets.numel()
         keep = None
         if self.training and self.cfg.cnn_dropout > 0:
-            keep, p = _keep_mask(n * self.cfg.cells * self.cfg.feature_dim, self.cfg.cnn_dropout)
+            keep, p = _keep_mask(n * self.cfg.cells * self.cfg.feature_dim, self.cfg.cnn_dropout, indices.device)
             weight = self._weight() * (1.0 / (1.0 - p))
         else:
             weight = self._weight() if torch.is_grad_enabled() else self._inference_weight()
         bias_row = self.cfg.cells * self.cfg.in_channels
         if groups is None:
-            bags, starts = _with_extra_index(indices, offsets, torch.full((n,), bias_row))
+            bags, starts = _with_extra_index(indices, offsets, torch.full((n,), bias_row, device=indices.device))
         else:
             shared, own, own_offsets = _shared_bits(indices, offsets, groups, bias_row + 1)
             shared_bits, shared_offsets = shared
@@ -364,10 +360,10 @@ class VisualEncoder(nn.Module):
 
 def _with_extra_index(indices: torch.Tensor, offsets: torch.Tensor, extra: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Bags (indices, offsets) with `extra[i]` put first in bag i."""
-    n = offsets.numel()
-    starts = offsets + torch.arange(n)
-    bags = torch.empty(indices.numel() + n, dtype=torch.long)
-    is_bit = torch.ones(bags.numel(), dtype=torch.bool)
+    n, device = offsets.numel(), offsets.device
+    starts = offsets + torch.arange(n, device=device)
+    bags = torch.empty(indices.numel() + n, dtype=torch.long, device=device)
+    is_bit = torch.ones(bags.numel(), dtype=torch.bool, device=device)
     is_bit[starts] = False
     bags[is_bit] = indices
     bags[starts] = extra
@@ -380,8 +376,8 @@ def _shared_bits(indices: torch.Tensor, offsets: torch.Tensor, groups: torch.Ten
     Returns ((shared bits, shared offsets) per group 0..G-1, plus the bias row `width-1`
     in each), and the bags' remaining (indices, offsets). Bags of group -1 keep all bits.
     """
-    n = offsets.numel()
-    counts = torch.diff(offsets, append=torch.tensor([indices.numel()]))
+    n, device = offsets.numel(), offsets.device
+    counts = torch.diff(offsets, append=torch.tensor([indices.numel()], device=device))
     bag_group = torch.repeat_interleave(groups, counts)
     num_groups = int(groups.max()) + 1 if n else 0
     in_group = bag_group >= 0
@@ -392,11 +388,12 @@ def _shared_bits(indices: torch.Tensor, offsets: torch.Tensor, groups: torch.Ten
     common[:, width - 1] = True  # the bias row: once per group
     is_shared = in_group & common.view(-1)[key]
     own = indices[~is_shared]
-    own_counts = counts - torch.zeros(n, dtype=torch.long).index_add_(0, torch.repeat_interleave(torch.arange(n), counts), is_shared.long())
-    own_offsets = torch.zeros(n, dtype=torch.long)
+    row_of_bit = torch.repeat_interleave(torch.arange(n, device=device), counts)
+    own_counts = counts - torch.zeros(n, dtype=torch.long, device=device).index_add_(0, row_of_bit, is_shared.long())
+    own_offsets = torch.zeros(n, dtype=torch.long, device=device)
     own_offsets[1:] = own_counts.cumsum(0)[:-1]
     group_ids, shared = common.nonzero(as_tuple=True)
-    shared_offsets = torch.zeros(num_groups, dtype=torch.long)
+    shared_offsets = torch.zeros(num_groups, dtype=torch.long, device=device)
     shared_offsets[1:] = common.sum(1).cumsum(0)[:-1]
     return (shared, shared_offsets), own, own_offsets
 
@@ -404,16 +401,21 @@ def _shared_bits(indices: torch.Tensor, offsets: torch.Tensor, groups: torch.Ten
 _DROP_LEVELS = 1 << 16
 
 
-def _keep_mask(size: int, p: float) -> tuple[torch.Tensor, float]:
-    """A uint8 keep mask (1 with probability 1-p) of `size` elements and the exact p it
-    drops with (a multiple of 2^-16).
+def _keep_mask(size: int, p: float, device: torch.device | str = "cpu") -> tuple[torch.Tensor, float]:
+    """A uint8 keep mask (1 with probability 1-p) of `size` elements on `device` and the
+    exact p it drops with (a multiple of 2^-16).
 
-    16-bit draws are cut from the raw 64-bit words of numpy's PCG64, seeded from torch's
-    generator (so `torch.manual_seed` still fixes it): ~15x faster than `bernoulli_` on
-    the 20M-element feature tensors. The bool result is viewed as uint8 at no cost, and
-    multiplying by uint8 is faster than `where` or `masked_fill` with a bool mask.
+    On the CPU, 16-bit draws are cut from the raw 64-bit words of numpy's PCG64, seeded
+    from torch's generator (so `torch.manual_seed` still fixes it): ~15x faster than
+    `bernoulli_` on the 20M-element feature tensors. The bool result is viewed as uint8 at
+    no cost, and multiplying by uint8 is faster than `where` or `masked_fill` with a bool
+    mask. On another device the 16-bit draws come from that device's torch generator, so
+    the mask never crosses from the host.
     """
     cut = round(p * _DROP_LEVELS)
+    if torch.device(device).type != "cpu":
+        draws = torch.randint(0, _DROP_LEVELS, (size,), dtype=torch.int32, device=device)
+        return (draws >= cut).view(torch.uint8), cut / _DROP_LEVELS
     rng = np.random.default_rng(int(torch.randint(0, 2**62, (1,))))
     draws = rng.bit_generator.random_raw(-(-size // 4)).view(np.uint16)[:size]
     return torch.from_numpy(draws >= cut).view(torch.uint8), cut / _DROP_LEVELS
@@ -439,12 +441,12 @@ class _ReluDrop(torch.autograd.Function):
         return torch.ops.aten.threshold_backward(grad, y, 0), None
 
 
-def sparse_states(states: np.ndarray | torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """uint8 one-hot states [N, g, g, C] -> (int64 set-bit indices, int64 bag offsets)."""
-    flat = torch.as_tensor(np.asarray(states)).reshape(len(states), -1)
+def sparse_states(states: np.ndarray | torch.Tensor, device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
+    """uint8 one-hot states [N, g, g, C] -> (int64 set-bit indices, int64 bag offsets) on `device`."""
+    flat = torch.as_tensor(np.asarray(states), device=device).reshape(len(states), -1)
     rows, cols = flat.nonzero(as_tuple=True)
     counts = torch.bincount(rows, minlength=flat.shape[0])
-    offsets = torch.zeros(flat.shape[0], dtype=torch.long)
+    offsets = torch.zeros(flat.shape[0], dtype=torch.long, device=device)
     offsets[1:] = counts.cumsum(0)[:-1]
     return cols, offsets
 
@@ -480,8 +482,6 @@ class WordModuleBank(nn.Module):
             self.att_state_w = _uniform((U, L * H, A), L * H)
             self.att_state_b = _uniform((U, A), L * H)
             self.att_out_w = _uniform((U, S + 1, A), (S + 1) * A)
-            if cfg.att_score_init == "positive":
-                self.att_out_w.data.abs_()
             self.att_out_b = _uniform((U,), (S + 1) * A)
         in0 = Fd + (H if cfg.passes_state else 0)  # weighted (or, without attention, summed) features
         self.gru_x = nn.ParameterList(_uniform((M, in0 if l == 0 else H, 3 * H), H) for l in range(L))
@@ -583,6 +583,19 @@ class Layout:
         self.src, self.root, self.pairs, self.pair_mask = t(src), t(root), t(pair_t), t(pair_mask)
         self.occupied, self.has_antonyms = t(occupied), t(has_antonyms)
 
+    def to(self, device: torch.device) -> "Layout":
+        """This layout with its slot tensors on `device` (itself when they are there)."""
+        if self.unit.device == torch.device(device):
+            return self
+        moved = copy.copy(self)
+        for name in _LAYOUT_TENSORS:
+            setattr(moved, name, getattr(self, name).to(device))
+        return moved
+
+
+_LAYOUT_TENSORS = ("unit", "module", "child", "slot_mask", "src", "root", "pairs", "pair_mask", "occupied",
+                   "has_antonyms")
+
 
 def _graph_levels(graph: CommandGraph, table: ModuleTable) -> list[list[_Entry]]:
     """Per level the graph's nodes (+ antonym shadows after them), checked against the table."""
@@ -675,22 +688,23 @@ class SlotGroups:
     """
 
     def __init__(self, slot_keys: torch.Tensor):
-        flat = slot_keys.reshape(-1)
+        flat, device = slot_keys.reshape(-1), slot_keys.device
         members = (flat >= 0).nonzero().squeeze(1)
         if members.numel() == 0:  # e.g. a level that no row of this prefix has
-            members = torch.zeros(1, dtype=torch.long)
-            keys_of = torch.zeros(1, dtype=torch.long)
+            members = torch.zeros(1, dtype=torch.long, device=device)
+            keys_of = torch.zeros(1, dtype=torch.long, device=device)
         else:
             keys_of = flat[members]
             order = torch.argsort(keys_of, stable=True)
             members, keys_of = members[order], keys_of[order]
         self.keys, counts = torch.unique_consecutive(keys_of, return_counts=True)
         self.groups, self.width = self.keys.numel(), int(counts.max())
-        group = torch.repeat_interleave(torch.arange(self.groups), counts)
-        target = group * self.width + torch.arange(members.numel()) - torch.repeat_interleave(counts.cumsum(0) - counts, counts)
+        group = torch.repeat_interleave(torch.arange(self.groups, device=device), counts)
+        target = (group * self.width + torch.arange(members.numel(), device=device)
+                  - torch.repeat_interleave(counts.cumsum(0) - counts, counts))
         self.idx = members[0].repeat(self.groups * self.width)
         self.idx[target] = members
-        self.inv = torch.full((flat.numel(),), int(target[0]), dtype=torch.long)
+        self.inv = torch.full((flat.numel(),), int(target[0]), dtype=torch.long, device=device)
         self.inv[members] = target
 
 
@@ -743,9 +757,14 @@ class CompositionalNetwork(nn.Module):
     def layout(self, graphs: Sequence[CommandGraph]) -> Layout:
         return Layout(graphs, self.table)
 
+    @property
+    def device(self) -> torch.device:
+        return self.bank.out_w.device
+
     def bind(self, layout: Layout) -> Bound:
         bank, cfg = self.bank, self.cfg
         A = cfg.att_dim
+        layout = layout.to(self.device)
         blocks = []
         for lo, hi in layout.blocks:
             u, m = layout.unit[:, lo:hi], layout.module[:, lo:hi]
@@ -766,7 +785,7 @@ class CompositionalNetwork(nn.Module):
                 blk["pass_w"], blk["pass_b"] = bank.state_w[m], bank.state_b[m]
             if cfg.runs_every_gru:
                 # Real slots run their module's GRU; padding and antonym shadows (src != own slot) none.
-                real = layout.occupied[:, lo:hi] & (layout.src[:, lo:hi] == torch.arange(lo, hi))
+                real = layout.occupied[:, lo:hi] & (layout.src[:, lo:hi] == torch.arange(lo, hi, device=self.device))
                 blk["gru_module"] = torch.where(real, m, -1)
             blocks.append(blk)
         root_module = layout.module.gather(1, layout.root[:, None])[:, 0]
@@ -781,7 +800,7 @@ class CompositionalNetwork(nn.Module):
         return Bound(blocks, top, layout.num_slots, list(layout.blocks), bank)
 
     def initial_hidden(self, rows: int, num_slots: int) -> torch.Tensor:
-        return torch.zeros(rows, num_slots, self.cfg.rnn_layers * self.cfg.rnn_dim)
+        return torch.zeros(rows, num_slots, self.cfg.rnn_layers * self.cfg.rnn_dim, device=self.device)
 
     def rollout(self, graphs: Sequence[CommandGraph]) -> "Rollout":
         return Rollout(self, graphs)
@@ -883,8 +902,13 @@ class CompositionalNetwork(nn.Module):
         steps); the all-steps-at-once path has no such cost, so no padding."""
         return 8 if self.cfg.runs_every_gru else 1
 
+    def forward(self, batch: "TeacherBatch") -> "TeacherOutput":
+        """Teacher forcing: the call DistributedDataParallel wraps."""
+        return self.teacher_forcing(batch)
+
     def teacher_forcing(self, batch: "TeacherBatch") -> "TeacherOutput":
-        """Loss over a batch whose rows are sorted by length, states packed time-major.
+        """Loss over a batch whose rows are sorted by length, states packed time-major;
+        the batch moves to the network's device first (once per update).
 
         With message='attention' the maps depend on the world state only (see `step`), so
         every step of every row is computed at once and only the root's GRU recurs
@@ -892,6 +916,7 @@ class CompositionalNetwork(nn.Module):
         parents) or attention_state='add' (a slot's state shapes its own map) the batch
         runs step by step (`_teacher_forcing_stepwise`).
         """
+        batch = batch.to(self.device)
         if self.cfg.runs_every_gru:
             return self._teacher_forcing_stepwise(batch)
         return self._teacher_forcing_parallel(batch)
@@ -901,7 +926,7 @@ class CompositionalNetwork(nn.Module):
         nll = F.cross_entropy(logits, batch.targets.clamp(min=0), reduction="none") * valid
         overlap = overlap * valid  # quirk Q4: padded steps add nothing
         per_step = nll + self.cfg.antonym_weight * overlap
-        per_example = torch.zeros(batch.layout.batch).index_add(0, batch.rows, per_step) / batch.lengths
+        per_example = per_step.new_zeros(batch.layout.batch).index_add(0, batch.rows, per_step) / batch.lengths
         return TeacherOutput(per_example.mean(), logits, nll, overlap)
 
     def _teacher_forcing_parallel(self, batch: "TeacherBatch") -> "TeacherOutput":
@@ -1029,7 +1054,7 @@ class _RowMajor:
     def __init__(self, batch: "TeacherBatch"):
         self.order = torch.argsort(batch.rows, stable=True)  # row-major position -> time-major step
         self.to_time_major = torch.empty_like(self.order)
-        self.to_time_major[self.order] = torch.arange(self.order.numel())
+        self.to_time_major[self.order] = torch.arange(self.order.numel(), device=self.order.device)
         self.rows = batch.rows.index_select(0, self.order)
         self.groups = torch.where(batch.valid.index_select(0, self.order), self.rows, -1)  # episode of each real step
         self.sizes = torch.bincount(batch.rows, minlength=batch.layout.batch).tolist()
@@ -1039,11 +1064,12 @@ class _RowMajor:
     def bags(self) -> tuple[torch.Tensor, torch.Tensor]:
         """(indices, offsets) of the encoder's bags in row-major order."""
         offsets, indices = self._batch.offsets, self._batch.indices
-        counts = torch.diff(offsets, append=torch.tensor([indices.numel()]))
+        counts = torch.diff(offsets, append=torch.tensor([indices.numel()], device=offsets.device))
         counts, starts = counts[self.order], offsets[self.order]
         new_offsets = torch.zeros_like(offsets)
         new_offsets[1:] = counts.cumsum(0)[:-1]
-        gather = torch.repeat_interleave(starts - new_offsets, counts) + torch.arange(int(counts.sum()))
+        gather = torch.repeat_interleave(starts - new_offsets, counts) + torch.arange(indices.numel(),
+                                                                                      device=offsets.device)
         return indices[gather], new_offsets
 
 
@@ -1098,6 +1124,14 @@ class TeacherBatch:
     active: list[int]  # rows alive per step
     episode_ids: np.ndarray | None = None  # dataset index of each row (bookkeeping only)
 
+    def to(self, device: torch.device) -> "TeacherBatch":
+        """The batch with its tensors (and its layout's) on `device`; itself when they are there."""
+        if self.indices.device == torch.device(device):
+            return self
+        return dataclasses.replace(
+            self, layout=self.layout.to(device),
+            **{name: getattr(self, name).to(device) for name in ("indices", "offsets", "targets", "rows", "valid", "lengths")})
+
 
 @dataclass
 class TeacherOutput:
@@ -1115,7 +1149,7 @@ class _ModuleGroups:
         self.modules, counts = torch.unique_consecutive(step_module.index_select(0, order), return_counts=True)
         self.members = order.split(counts.tolist())
         self.inverse = torch.empty_like(order)
-        self.inverse[order] = torch.arange(order.numel())
+        self.inverse[order] = torch.arange(order.numel(), device=order.device)
 
     def linear(self, x: torch.Tensor, w: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         """x [N, in] -> [N, out], each step through its module's w [M, in, out] + b [M, out]."""
@@ -1152,7 +1186,7 @@ class Rollout:
 
     def step(self, observations: np.ndarray) -> tuple[torch.Tensor, torch.Tensor | None]:
         """uint8 [n, g, g, C] -> (logits [n, actions], attention maps [n, J, cells] or None)."""
-        feats = self.net.encoder(*sparse_states(observations))
+        feats = self.net.encoder(*sparse_states(observations, self.net.device))
         res = self.net.step(self.bound, self.hidden, feats)
         self.hidden = res.hidden
         return res.logits, res.maps
@@ -1161,7 +1195,7 @@ class Rollout:
         """Row `row` of `step`'s maps as float32 [g, g] grids: word -> its map, and word -> the
         map of its antonym head run on the same inputs (words of antonym pairs only)."""
         g = self.net.cfg.grid_size
-        grids = maps[row].reshape(-1, g, g).numpy().astype(np.float32)
+        grids = maps[row].reshape(-1, g, g).cpu().numpy().astype(np.float32)
         word_of = dict(self.words[row])
         pairs, mask = self.bound.top["pairs"][row].tolist(), self.bound.top["pair_mask"][row].tolist()
         return ({word: grids[slot] for slot, word in word_of.items()},
@@ -1171,6 +1205,7 @@ class Rollout:
         """The network conditions on world states only, not on its past actions."""
 
     def keep(self, rows: torch.Tensor) -> None:
+        self.words = [self.words[i] for i in rows.tolist()]
+        rows = rows.to(self.hidden.device)
         self.bound = self.bound.select(rows)
         self.hidden = self.hidden.index_select(0, rows)
-        self.words = [self.words[i] for i in rows.tolist()]

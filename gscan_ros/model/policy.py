@@ -18,6 +18,7 @@ from gscan_ros.errors import CheckpointError, GraphError
 from gscan_ros.language.graph import CommandGraph
 from gscan_ros.language.lexicon import Lexicon
 from gscan_ros.model.checkpoint import checkpoint_lexicon, read_checkpoint, restore_model
+from gscan_ros.model.runtime import resolve_device
 from gscan_ros.world.types import NUM_CHANNELS, Action
 
 DEFAULT_CHECKPOINT = "default_model.pt"
@@ -49,12 +50,17 @@ class Policy:
         self._rollout = None
 
     @classmethod
-    def from_checkpoint(cls, path: str | os.PathLike | None = None) -> "Policy":
-        """Load a checkpoint (None: the shipped default model); CheckpointError if unusable."""
+    def from_checkpoint(cls, path: str | os.PathLike | None = None, device: str | torch.device = "cpu") -> "Policy":
+        """Load a checkpoint (None: the shipped default model) onto `device` ('cpu', 'cuda',
+        'auto'; see `runtime.resolve_device`); CheckpointError if unusable."""
         ckpt = read_checkpoint(default_checkpoint_path() if path is None else path)
-        model = restore_model(ckpt)
+        model = restore_model(ckpt).to(resolve_device(device))
         meta = {"step": ckpt.get("step", 0), "metrics": ckpt.get("metrics", {}), "kind": ckpt["kind"]}
         return cls(model, str(ckpt["parser"]), checkpoint_lexicon(ckpt), meta)
+
+    @property
+    def device(self) -> torch.device:
+        return self.model.device
 
     @property
     def parser_name(self) -> str:

@@ -1,7 +1,12 @@
-"""Process-wide torch settings for running the network on CPU."""
+"""Process-wide torch settings, and which device the network runs on.
+
+torch is imported inside the functions, so the CLI can offer `DEVICES` without loading it.
+"""
 from __future__ import annotations
 
-import torch
+from gscan_ros.errors import GscanError
+
+DEVICES = ("auto", "cpu", "cuda")
 
 
 def configure_torch(threads: int = 0) -> None:
@@ -13,6 +18,30 @@ def configure_torch(threads: int = 0) -> None:
     a trained checkpoint ran 839 vs 1,182 examples/s without vs with flushing
     (docs/results.md). Values that small change nothing a float32 model computes.
     """
+    import torch
+
     if threads:
         torch.set_num_threads(threads)
     torch.set_flush_denormal(True)
+
+
+def resolve_device(name: str | torch.device = "cpu", index: int = 0) -> torch.device:
+    """'cpu', 'cuda' (GPU `index`: a process's local rank under torchrun) or 'auto' (cuda
+    when torch sees a GPU, else cpu) -> a torch.device; GscanError for another name or a
+    GPU that is not there."""
+    import torch
+
+    if isinstance(name, torch.device):
+        return name
+    if name not in DEVICES:
+        raise GscanError(f"device must be one of {list(DEVICES)}, got {name!r}")
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    if name == "cpu":
+        return torch.device("cpu")
+    if not torch.cuda.is_available():
+        raise GscanError(f"device 'cuda' asked for, but torch {torch.__version__} sees no CUDA GPU")
+    if index >= torch.cuda.device_count():
+        raise GscanError(f"process {index} on this machine needs GPU {index}, but only "
+                         f"{torch.cuda.device_count()} are visible")
+    return torch.device("cuda", index)

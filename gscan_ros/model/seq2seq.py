@@ -100,6 +100,10 @@ class Seq2Seq(nn.Module):
     def sos(self) -> int:
         return self.cfg.num_actions
 
+    @property
+    def device(self) -> torch.device:
+        return self.out.weight.device
+
     def encode_commands(self, commands: list[str]) -> tuple[torch.Tensor, torch.Tensor]:
         from gscan_ros.language.tokens import tokenize
 
@@ -111,7 +115,7 @@ class Seq2Seq(nn.Module):
                 raise CommandError(f"tokens {unknown} are not in the model's vocabulary")
             ids.append([self.index[t] for t in toks])
         width = max(len(i) for i in ids)
-        padded = torch.tensor([i + [0] * (width - len(i)) for i in ids])
+        padded = torch.tensor([i + [0] * (width - len(i)) for i in ids], device=self.device)
         mask = padded > 0
         out, _ = self.encoder(self.drop(self.embed(padded)))
         H = self.cfg.hidden
@@ -119,7 +123,7 @@ class Seq2Seq(nn.Module):
 
     def _start(self, commands, first_states):
         text, mask = self.encode_commands(commands)
-        world = self.visual_proj(self.visual(*sparse_states(first_states)))
+        world = self.visual_proj(self.visual(*sparse_states(first_states, self.device)))
         n, H = len(commands), self.cfg.hidden
         return {"text": text, "mask": mask, "world": world, "h": text.new_zeros(n, H), "c": text.new_zeros(n, H)}
 
@@ -141,10 +145,14 @@ class Seq2Seq(nn.Module):
             tgt[b, : len(t)] = torch.from_numpy(t)
         return {"commands": [store.commands[i] for i in ids], "first": first, "targets": tgt}
 
+    def forward(self, batch: dict) -> TeacherOutput:
+        """Teacher forcing: the call DistributedDataParallel wraps."""
+        return self.teacher_forcing(batch)
+
     def teacher_forcing(self, batch: dict) -> TeacherOutput:
         st = self._start(batch["commands"], batch["first"])
-        targets = batch["targets"]
-        prev = torch.full((len(targets),), self.sos, dtype=torch.long)
+        targets = batch["targets"].to(self.device)
+        prev = torch.full((len(targets),), self.sos, dtype=torch.long, device=self.device)
         logits = []
         for t in range(targets.shape[1]):
             out, _ = self._decode(st, prev)
@@ -153,7 +161,7 @@ class Seq2Seq(nn.Module):
         logits_t = torch.stack(logits, 1)
         valid = targets >= 0
         nll = F.cross_entropy(logits_t[valid], targets[valid], reduction="none")
-        per_example = torch.zeros(len(targets)).index_add(0, valid.nonzero()[:, 0], nll) / valid.sum(1)
+        per_example = nll.new_zeros(len(targets)).index_add(0, valid.nonzero()[:, 0], nll) / valid.sum(1)
         return TeacherOutput(per_example.mean(), logits_t[valid], nll, torch.zeros_like(nll))
 
     def rollout(self, graphs) -> "Seq2SeqRollout":
@@ -165,7 +173,7 @@ class Seq2SeqRollout:
 
     def __init__(self, model: Seq2Seq, commands: list[str]):
         self.model, self.commands, self.state = model, commands, None
-        self.prev = torch.full((len(commands),), model.sos, dtype=torch.long)
+        self.prev = torch.full((len(commands),), model.sos, dtype=torch.long, device=model.device)
         self.words = [[] for _ in commands]  # no per-word attention maps
 
     def step(self, observations: np.ndarray):
@@ -178,7 +186,8 @@ class Seq2SeqRollout:
         self.prev = actions.clone()
 
     def keep(self, rows: torch.Tensor) -> None:
-        self.state = {k: v.index_select(0, rows) for k, v in self.state.items()}
-        self.prev = self.prev.index_select(0, rows)
         self.commands = [self.commands[i] for i in rows.tolist()]
         self.words = [self.words[i] for i in rows.tolist()]
+        rows = rows.to(self.prev.device)
+        self.state = {k: v.index_select(0, rows) for k, v in self.state.items()}
+        self.prev = self.prev.index_select(0, rows)

@@ -70,12 +70,15 @@ class PolicyNode(Node):
         torch_threads = self.declare_parameter(
             "torch_threads", 1, describe("CPU threads for the model; one is fastest for single-step inference")
         ).value
+        device = self.declare_parameter(
+            "device", "cpu", describe("where the model runs: cpu, cuda, or auto (cuda if torch sees a GPU)")
+        ).value
         self.status = StatusReporter(self)
         configure_torch(torch_threads)
         if policy is None:
             from gscan_ros.model.policy import Policy
 
-            policy = Policy.from_checkpoint(checkpoint or None)
+            policy = Policy.from_checkpoint(checkpoint or None, device=device)
         self._policy = policy
         self._action_pub = self.create_publisher(String, ACTION, EVENT_QOS)
         self._attention_pubs: dict[str, object] = {}

@@ -20,6 +20,7 @@ from tqdm import tqdm
 from gscan_ros.data.episode import Episode
 from gscan_ros.errors import GscanError, InvalidActionError
 from gscan_ros.model.policy import Policy
+from gscan_ros.training.distributed import Ranks, shard_of
 from gscan_ros.world.types import ADVERBS, COLORS, TRANSITIVE_VERBS, Action
 from gscan_ros.world.world import World
 
@@ -128,9 +129,14 @@ def _pct(flags) -> float:
 @torch.no_grad()
 def evaluate_episodes(model_or_policy, episodes: Sequence[Episode], batch_size: int = 1024,
                       max_steps: int = MAX_STEPS, record_attention: bool = False, parser: str = "semantic",
-                      progress: bool = False) -> EvalResult:
+                      progress: bool = False, ranks: Ranks = Ranks()) -> EvalResult | None:
     """Closed-loop decode `episodes`, `batch_size` at a time. A bare model is wrapped in a
-    Policy with `parser` (and no lexicon)."""
+    Policy with `parser` (and no lexicon).
+
+    Sharded over `ranks` (every rank calls it with the same episodes): each rank decodes
+    every world_size-th batch, exactly the batches one process would decode, and rank 0
+    gets all predictions back in order, bit for bit the single-process result; the other
+    ranks get None."""
     policy = model_or_policy if isinstance(model_or_policy, Policy) else Policy(model_or_policy, parser)
     other = next((ep for ep in episodes if ep.situation.grid_size != policy.grid_size), None)
     if other is not None:
@@ -139,13 +145,23 @@ def evaluate_episodes(model_or_policy, episodes: Sequence[Episode], batch_size: 
                          f"episode {other.example_id} of split {other.split!r} is on {g}x{g}")
     was_training = policy.model.training
     policy.model.eval()
-    result = EvalResult()
+    mine = shard_of(range(0, len(episodes), batch_size), ranks)
+    decoded: dict[int, list[Prediction]] = {}
     try:
-        for start in tqdm(range(0, len(episodes), batch_size), desc="evaluating", unit="batch", disable=not progress):
-            result.predictions += _decode_batch(policy, episodes[start : start + batch_size], max_steps, record_attention)
+        for start in tqdm(mine, desc="evaluating", unit="batch", disable=not progress):
+            decoded[start] = _decode_batch(policy, episodes[start : start + batch_size], max_steps, record_attention)
     finally:
         policy.model.train(was_training)
-    return result
+    if not ranks.distributed:
+        return EvalResult([p for start in sorted(decoded) for p in decoded[start]])
+    # Only what was decoded travels; rank 0 pairs it with its own copy of the episodes.
+    parts = ranks.gather_to_main({start: [(p.actions, p.attention) for p in preds] for start, preds in decoded.items()})
+    if parts is None:
+        return None
+    merged = {start: preds for part in parts for start, preds in part.items()}
+    return EvalResult([Prediction(ep, actions, attention)
+                       for start in sorted(merged)
+                       for ep, (actions, attention) in zip(episodes[start : start + batch_size], merged[start])])
 
 
 def _decode_batch(policy: Policy, episodes: Sequence[Episode], max_steps: int, record: bool) -> list[Prediction]:
@@ -160,6 +176,7 @@ def _decode_batch(policy: Policy, episodes: Sequence[Episode], max_steps: int, r
         chosen = logits.argmax(-1)
         rollout.advance(chosen)
         if record and maps is not None:
+            maps = maps.cpu()
             for row, i in enumerate(live):
                 for slot, word in rollout.words[row]:
                     preds[i].attention.setdefault(word, []).append(maps[row, slot].numpy())

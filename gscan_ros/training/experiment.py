@@ -138,12 +138,18 @@ class Plan:
     datasets: dict[str, DataRecipe]
     runs: list[RunSpec]
 
-    def share(self, worker: tuple[int, int] | None) -> list[RunSpec]:
-        """Worker i of N takes the runs whose index % N == i (every run without a worker)."""
+    def share(self, worker: tuple[int, int] | None, only: tuple[str, ...] = ()) -> list[RunSpec]:
+        """Worker i of N takes the runs whose index % N == i (every run without a worker);
+        `only` keeps the runs named there (a `runs:` entry name or a run name like
+        'semantic_s1'), in plan order — PlanError for a name the plan does not have."""
+        unknown = sorted(set(only) - {r.entry for r in self.runs} - {r.name for r in self.runs})
+        if unknown:
+            raise PlanError(f"{self.path}: no run or runs[] entry named {', '.join(map(repr, unknown))}")
+        runs = [r for r in self.runs if not only or r.entry in only or r.name in only]
         if worker is None:
-            return list(self.runs)
+            return runs
         i, n = worker
-        return [r for r in self.runs if r.index % n == i]
+        return [r for r in runs if r.index % n == i]
 
 
 _TOP_KEYS = ("results", "data_root", "defaults", "evaluation", "datasets", "runs")
@@ -538,14 +544,15 @@ class Runner:
     subprocess with `threads` torch threads."""
 
     def __init__(self, plan: Plan, *, parallel: int = 1, threads: int = 1, worker: tuple[int, int] | None = None,
-                 restart_stale: bool = False, progress: bool = True, echo: Callable[[str], None] = print):
+                 only: tuple[str, ...] = (), restart_stale: bool = False, progress: bool = True,
+                 echo: Callable[[str], None] = print):
         self.plan = plan
         self.parallel = parallel
         self.threads = threads
         self.restart_stale = restart_stale
         self.progress = progress
         self.echo = echo
-        self.share = plan.share(worker)
+        self.share = plan.share(worker, only)
         self.configs = {spec.name: resolve_config(plan, spec, threads) for spec in self.share}
         self._stop = threading.Event()
         self._children: set[subprocess.Popen] = set()

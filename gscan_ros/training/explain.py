@@ -265,12 +265,12 @@ def evenly(items: Sequence, most: int) -> list:
 
 
 def progression_metrics(paths: Sequence[tuple[int, Path]], episodes: Sequence[Episode],
-                        batch_size: int = 512) -> list[dict]:
+                        batch_size: int = 512, device: str = "cpu") -> list[dict]:
     """For each snapshot: its update, the dev exact match of its last validation (and that
-    validation's update), and `summarize`'s "all" row over `episodes`."""
+    validation's update), and `summarize`'s "all" row over `episodes` (decoded on `device`)."""
     rows = []
     for step, path in paths:
-        policy = Policy.from_checkpoint(path)
+        policy = Policy.from_checkpoint(path, device=device)
         metrics = policy.metadata.get("metrics") or {}
         summary = summarize(step0_readings(policy, episodes, batch_size))["all"]
         rows.append({"update": step, "dev_exact_match": metrics.get("dev_exact_match"),

@@ -31,6 +31,7 @@ from gscan_ros.model.compositional import ModuleTable
 from gscan_ros.model.runtime import configure_torch
 from gscan_ros.model.policy import Policy
 from gscan_ros.training.batches import EpisodeStore, EpochCursor, iterate_batches
+from gscan_ros.training import distributed
 from gscan_ros.training.config import ConfigError, TrainConfig
 from gscan_ros.training.evaluate import evaluate_episodes, exact_match_by_group
 
@@ -207,14 +208,29 @@ class TrainingDiverged(GscanError):
 
 
 def train(cfg: TrainConfig, data: str, out_dir: str | Path, resume: bool = False, progress: bool = True,
-          overwrite: bool = False, on_validation: Callable[[dict], None] | None = None) -> dict:
+          overwrite: bool = False, on_validation: Callable[[dict], None] | None = None,
+          device: str | torch.device = "cpu") -> dict:
     """Train per `cfg` on dataset `data`; returns the final metrics dict.
 
     A new run refuses a directory that holds a run unless `overwrite` (then only the run's
     own files are replaced); nothing is written before the data has loaded.
-    `on_validation` sees every validation's metrics (e.g. to print a row)."""
-    files = RunFiles(Path(out_dir))
-    files.check_writable(resume, overwrite)
+    `on_validation` sees every validation's metrics (e.g. to print a row).
+    `device`: 'cpu', 'cuda' or 'auto' (`runtime.resolve_device`).
+
+    Started by `torchrun` with several ranks, the ranks train one model with
+    DistributedDataParallel: each takes a shard of every global batch of `batch_size`
+    (`distributed.shard_batch`), rank 0 validates, logs and writes the run's files, and
+    every rank returns rank 0's result. The batches, and so a run's result, do not depend
+    on the number of ranks (up to float rounding); `resume` continues a run whatever
+    number of ranks wrote it."""
+    with distributed.joined(device) as ranks:
+        return _train(cfg, data, RunFiles(Path(out_dir)), resume, progress, overwrite, on_validation, ranks)
+
+
+def _train(cfg: TrainConfig, data: str, files: RunFiles, resume: bool, progress: bool, overwrite: bool,
+           on_validation: Callable[[dict], None] | None, ranks: distributed.Ranks) -> dict:
+    main = ranks.is_main
+    ranks.from_main(lambda: files.check_writable(resume, overwrite))
     configure_torch(cfg.threads)
     keep_freed_memory()
     seeds = seed_everything(cfg.seed)
@@ -223,18 +239,18 @@ def train(cfg: TrainConfig, data: str, out_dir: str | Path, resume: bool = False
 
     parser = get_parser(cfg.parser, lexicon)
     t0 = time.time()
-    store = load_train_store(data, cfg, parser, progress=progress)
+    if ranks.distributed:  # a bag's decode-once cache is built by one rank, then read by all
+        ranks.from_main(lambda: split_cache(data, cfg.train_split) and None)
+    store = load_train_store(data, cfg, parser, progress=progress and main)
     if not len(store):
         raise DatasetFormatError(f"dataset {data!r} has no {cfg.train_split!r} episodes")
-    dev_eps = load_dev(data, cfg)
-    model = new_model(cfg, parser, lexicon, store)
+    dev_eps = load_dev(data, cfg) if main else []
+    model = new_model(cfg, parser, lexicon, store).to(ranks.device)
     optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr, betas=(0.9, 0.999))
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, cfg.lr_factor)
     step, cursor, best, elapsed_before = 0, EpochCursor(), -1.0, 0.0
     if resume:
-        ckpt = read_checkpoint(files.last)
-        if ckpt.get("parser") != cfg.parser:
-            raise CheckpointError(f"--resume: checkpoint was trained with parser {ckpt.get('parser')!r}, config says {cfg.parser!r}")
+        ckpt = ranks.from_main(lambda: _read_resume_checkpoint(files.last, cfg))
         restore_model(ckpt, model)
         optimizer.load_state_dict(ckpt["optimizer"])
         step = int(ckpt["step"])
@@ -244,21 +260,30 @@ def train(cfg: TrainConfig, data: str, out_dir: str | Path, resume: bool = False
         cursor = EpochCursor(**ckpt["cursor"])
         best = float(ckpt["best_dev_exact_match"])
         elapsed_before = float(ckpt.get("elapsed_s", 0.0))
-        _restore_rng(ckpt["rng"])
-    files.create(resume)
-    files.config.write_text(yaml.safe_dump(cfg.to_dict(), sort_keys=False))
-    n_params = sum(p.numel() for p in model.parameters())
-    _append(files.metrics, {"event": "start", "step": step, "seeds": seeds, "train_examples": len(store),
-                            "dev_examples": len(dev_eps), "parameters": n_params, "resumed": resume,
-                            "data_load_s": round(time.time() - t0, 2), "config": cfg.to_dict()})
+        _restore_rng(ckpt["rng"], ranks.device)
+    if not main:  # own dropout masks; the weights come from rank 0 (DDP broadcasts them)
+        torch.manual_seed(int(np.random.SeedSequence([cfg.seed, ranks.rank, step]).generate_state(1)[0]))
+    net = model
+    if ranks.distributed:
+        # Some parameters are unused in some modes (att_state_* unless attention_state='add').
+        # The batch is already on the device: DDP is not asked to move it (device_ids None).
+        net = torch.nn.parallel.DistributedDataParallel(model, find_unused_parameters=True)
+    if main:
+        files.create(resume)
+        files.config.write_text(yaml.safe_dump(cfg.to_dict(), sort_keys=False))
+        n_params = sum(p.numel() for p in model.parameters())
+        _append(files.metrics, {"event": "start", "step": step, "seeds": seeds, "train_examples": len(store),
+                                "dev_examples": len(dev_eps), "parameters": n_params, "resumed": resume,
+                                "world_size": ranks.world_size, "device": str(ranks.device),
+                                "data_load_s": round(time.time() - t0, 2), "config": cfg.to_dict()})
     policy = Policy(model, cfg.parser, lexicon)
 
     def checkpoint(path: Path, metrics: dict, training_state: bool) -> None:
         extra = {}
         if training_state:
-            extra = {"train_config": cfg.to_dict(), "optimizer": optimizer.state_dict(), "rng": _rng_state(),
-                     "cursor": {"epoch": cursor.epoch, "batch": cursor.batch}, "best_dev_exact_match": best,
-                     "elapsed_s": elapsed_before + time.time() - start}
+            extra = {"train_config": cfg.to_dict(), "optimizer": _to_cpu(optimizer.state_dict()),
+                     "rng": _rng_state(ranks.device), "cursor": {"epoch": cursor.epoch, "batch": cursor.batch},
+                     "best_dev_exact_match": best, "elapsed_s": elapsed_before + time.time() - start}
         save_checkpoint(path, checkpoint_dict(model, parser=cfg.parser, lexicon=lexicon, step=step,
                                               metrics=metrics, **extra))
 
@@ -278,29 +303,48 @@ def train(cfg: TrainConfig, data: str, out_dir: str | Path, resume: bool = False
             on_validation(metrics)
         return metrics
 
+    def finish() -> dict:
+        nonlocal last_metrics
+        if not last_metrics or last_metrics.get("step") != step:
+            last_metrics = validate()
+            checkpoint(files.last, last_metrics, training_state=True)
+        best_ckpt = read_checkpoint(files.best)
+        save_checkpoint(files.model, {k: v for k, v in best_ckpt.items()})
+        reached = bool(cfg.target_dev_exact_match) and best >= cfg.target_dev_exact_match
+        _append(files.metrics, {"event": "end", "step": step, "best_dev_exact_match": best, "reached_target": reached,
+                                "elapsed_s": elapsed_before + time.time() - start})
+        return {"step": step, "best_dev_exact_match": best, "reached_target": reached, **last_metrics}
+
     start = time.time()
     model.train()
     window = {"loss": 0.0, "examples": 0, "t": time.time(), "n": 0}
-    bar = tqdm(total=cfg.max_updates, initial=step, desc="training", unit="upd", disable=not progress)
+    bar = tqdm(total=cfg.max_updates, initial=step, desc="training", unit="upd", disable=not (progress and main))
     last_metrics: dict = {}
     batches = iterate_batches(store, cfg.batch_size, cfg.batching, cfg.seed, cursor)
     budget_s = cfg.max_minutes * 60.0
     while step < cfg.max_updates:
         cursor, ids = next(batches)
-        out = model.teacher_forcing(store.batch(ids, model.table, model.teacher_quantum) if cfg.model_kind == "compositional"
-                                    else model.make_batch(store, ids))
-        if not torch.isfinite(out.loss):
-            raise TrainingDiverged(f"the loss became {float(out.loss)} at update {step + 1}; "
+        shard, weight = distributed.shard_batch(ids, store.lengths, ranks)
+        out = net(store.batch(shard, model.table, model.teacher_quantum) if cfg.model_kind == "compositional"
+                  else model.make_batch(store, shard))
+        loss = out.loss if weight == 1.0 else out.loss * weight
+        if ranks.distributed:  # the whole batch's loss (DDP's average), and whether any rank's is broken
+            stats = ranks.reduce_sum(torch.stack([loss.detach() / ranks.world_size, (~torch.isfinite(loss)).float()]))
+            batch_loss, finite = stats[0], not bool(stats[1])
+        else:
+            batch_loss, finite = loss.detach(), bool(torch.isfinite(loss))
+        if not finite:
+            raise TrainingDiverged(f"the loss became {float(batch_loss)} at update {step + 1}; "
                                    f"{files.last} holds the last good state (try a lower lr or grad_clip)")
         optimizer.zero_grad(set_to_none=True)
-        out.loss.backward()
+        loss.backward()
         if cfg.grad_clip:
             torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
         optimizer.step()
         scheduler.step()
         step += 1
         bar.update(1)
-        window["loss"] += float(out.loss.detach())
+        window["loss"] += float(batch_loss)
         window["examples"] += len(ids)
         window["n"] += 1
         if step % cfg.log_every == 0:
@@ -309,40 +353,57 @@ def train(cfg: TrainConfig, data: str, out_dir: str | Path, resume: bool = False
             line = {"event": "train", "step": step, "epoch": cursor.epoch, "loss": window["loss"] / window["n"],
                     "examples_per_s": rate, "elapsed_s": elapsed_before + now - start,
                     "lr": optimizer.param_groups[0]["lr"]}
-            _append(files.metrics, line)
+            if main:
+                _append(files.metrics, line)
             bar.set_postfix(loss=f"{line['loss']:.3f}", ex_s=f"{rate:.0f}")
             window = {"loss": 0.0, "examples": 0, "t": now, "n": 0}
-        out_of_time = budget_s and elapsed_before + time.time() - start >= budget_s
+        # Rank 0's clock and validations decide for every rank, so all stop at the same update.
+        out_of_time = bool(budget_s) and ranks.from_main(lambda: elapsed_before + time.time() - start >= budget_s)
         reached = False
         if step % cfg.validate_every == 0 or step == cfg.max_updates or out_of_time:
-            last_metrics = validate()
+            last_metrics = ranks.from_main(validate)
             reached = bool(cfg.target_dev_exact_match) and last_metrics["dev_exact_match"] >= cfg.target_dev_exact_match
-        if step % cfg.checkpoint_every == 0 or step == cfg.max_updates or out_of_time or reached:
+        if main and (step % cfg.checkpoint_every == 0 or step == cfg.max_updates or out_of_time or reached):
             checkpoint(files.last, last_metrics, training_state=True)
-        if cfg.snapshot_every and step % cfg.snapshot_every == 0:
+        if main and cfg.snapshot_every and step % cfg.snapshot_every == 0:
             checkpoint(files.snapshot(step), last_metrics, training_state=False)
         if out_of_time or reached:
             break
     bar.close()
-    if not last_metrics or last_metrics.get("step") != step:
-        last_metrics = validate()
-        checkpoint(files.last, last_metrics, training_state=True)
-    best_ckpt = read_checkpoint(files.best)
-    save_checkpoint(files.model, {k: v for k, v in best_ckpt.items()})
-    reached = bool(cfg.target_dev_exact_match) and best >= cfg.target_dev_exact_match
-    _append(files.metrics, {"event": "end", "step": step, "best_dev_exact_match": best, "reached_target": reached,
-                            "elapsed_s": elapsed_before + time.time() - start})
-    return {"step": step, "best_dev_exact_match": best, "reached_target": reached, **last_metrics}
+    return ranks.from_main(finish)
 
 
-def _rng_state() -> dict:
-    return {"python": list(random.getstate()[1]), "python_version": random.getstate()[0],
-            "python_gauss": random.getstate()[2], "torch": torch.get_rng_state()}
+def _read_resume_checkpoint(path: Path, cfg: TrainConfig) -> dict:
+    ckpt = read_checkpoint(path)
+    if ckpt.get("parser") != cfg.parser:
+        raise CheckpointError(f"--resume: checkpoint was trained with parser {ckpt.get('parser')!r}, config says {cfg.parser!r}")
+    return ckpt
 
 
-def _restore_rng(state: dict) -> None:
+def _to_cpu(obj):
+    """A (nested) state dict with every tensor on the CPU: checkpoints load on any machine."""
+    if isinstance(obj, torch.Tensor):
+        return obj.cpu()
+    if isinstance(obj, dict):
+        return {k: _to_cpu(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(_to_cpu(v) for v in obj)
+    return obj
+
+
+def _rng_state(device: torch.device) -> dict:
+    state = {"python": list(random.getstate()[1]), "python_version": random.getstate()[0],
+             "python_gauss": random.getstate()[2], "torch": torch.get_rng_state()}
+    if device.type == "cuda":  # the generator of dropout masks on that device
+        state["cuda"] = torch.cuda.get_rng_state(device)
+    return state
+
+
+def _restore_rng(state: dict, device: torch.device) -> None:
     random.setstate((state["python_version"], tuple(state["python"]), state["python_gauss"]))
     torch.set_rng_state(state["torch"])
+    if device.type == "cuda" and "cuda" in state:
+        torch.cuda.set_rng_state(state["cuda"], device)
 
 
 def _append(path: Path, record: dict) -> None:

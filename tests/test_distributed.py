@@ -22,10 +22,8 @@ TIMING_KEYS = ("seconds", "episodes_per_s")
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory):
-    out = tmp_path_factory.mktemp("data")
-    assert main(["generate", "--out", str(out), "--examples", "300", "--seed", "0", "--workers", "1", "--quiet"]) == 0
-    return out
+def dataset(tiny_dataset):
+    return tiny_dataset
 
 
 def train_args(dataset, out, updates: int, *extra) -> list[str]:
@@ -36,9 +34,9 @@ def train_args(dataset, out, updates: int, *extra) -> list[str]:
     a weight-0 row. lr 1e-4, not 1e-3: Adam divides each gradient by its own magnitude,
     so where one nearly cancels (attention biases shift every cell's logit, and the
     softmax removes that) float rounding moves the weights by up to ~lr/100 per update.
-    At lr 1e-3 one process on 1 vs 2 threads already ends 3.7e-5 apart (2 ranks:
-    1.1-3.2e-5); at 1e-4, 9e-7 (2 ranks: 2e-7 to 1.3e-6), 10x under the bound, while a
-    wrong shard still moves them by ~lr per update."""
+    At lr 1e-3 (batch 16) one process on 1 vs 2 threads already ends 3.7e-5 apart (2
+    ranks: 1.1-3.2e-5); at 1e-4, 9e-7 (2 ranks: 2e-7 to 1.3e-6), 10x under the bound,
+    while leaving out the shard weights ends 6e-4 apart (docs/scaling.md)."""
     return ["train", "--data", str(dataset), "--out", str(out), "--quiet", "--set", "batch_size=17",
             "--set", "lr=1e-4", "--set", f"max_updates={updates}", "--set", "lexicon=none", "--set", "model.cnn_dropout=0",
             "--set", "threads=1", "--set", "max_dev_examples=4", "--set", "validate_every=1000",

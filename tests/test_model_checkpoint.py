@@ -59,6 +59,15 @@ def test_mismatched_config_or_vocabulary_is_a_checkpoint_error(tmp_path):
         restore_model(ckpt)
 
 
+def test_a_checkpoint_written_before_a_setting_existed_resumes_with_its_default(tmp_path):
+    net, path = saved(tmp_path)
+    ckpt = read_checkpoint(path)
+    del ckpt["model_config"]["size_map"]  # as written before model.size_map was added
+    restore_model(ckpt, CompositionalNetwork(ModelConfig(), table()))
+    with pytest.raises(CheckpointError, match="size_map"):
+        restore_model(ckpt, CompositionalNetwork(ModelConfig(size_map="minmax"), table()))
+
+
 @pytest.mark.parametrize("content", [b"not a checkpoint", None])
 def test_unreadable_checkpoint(tmp_path, content):
     path = tmp_path / "bad.pt"

@@ -8,11 +8,9 @@ from gscan_ros.cli import main
 from gscan_ros.model.checkpoint import read_checkpoint
 
 
-@pytest.fixture(scope="module")
-def dataset(tmp_path_factory):
-    out = tmp_path_factory.mktemp("data")
-    assert main(["generate", "--out", str(out), "--examples", "300", "--seed", "0", "--workers", "1", "--quiet"]) == 0
-    return out
+@pytest.fixture
+def dataset(tiny_dataset):
+    return tiny_dataset
 
 
 def run_train(dataset, out, *extra):

@@ -32,11 +32,9 @@ def test_bad_schedule_settings_are_named(override):
         TrainConfig.load(None, [override])
 
 
-@pytest.fixture(scope="module")
-def dataset(tmp_path_factory):
-    out = tmp_path_factory.mktemp("data")
-    assert main(["generate", "--out", str(out), "--examples", "300", "--seed", "0", "--workers", "1", "--quiet"]) == 0
-    return out
+@pytest.fixture
+def dataset(tiny_dataset):
+    return tiny_dataset
 
 
 def run_train(dataset, out, *extra):
@@ -59,19 +57,28 @@ def test_schedule_is_applied_and_resumed(dataset, tmp_path):
     assert lrs == pytest.approx([0.004, 0.004, 0.0025, 0.001, 0.001])
 
 
-def test_training_stops_once_the_target_is_reached(dataset, tmp_path):
+def test_training_stops_once_the_target_is_reached(dataset, tmp_path, monkeypatch):
+    """Dev exact match is scripted (0, 0, 60, ...): training stops at the third validation."""
+    import gscan_ros.training.trainer as trainer
+
+    real = trainer.evaluate_episodes
+    scripted = iter([0.0, 0.0, 60.0, 90.0])
+
+    def evaluate(*args, **kwargs):
+        result = real(*args, **kwargs)
+        score = next(scripted)
+        monkeypatch.setattr(type(result), "exact_match", property(lambda self: score))
+        return result
+
+    monkeypatch.setattr(trainer, "evaluate_episodes", evaluate)
     run = tmp_path / "run"
-    # 0 % dev exact match is reached by any model at the first validation
-    assert run_train(dataset, run, "--set", "max_updates=50", "--set", "validate_every=2",
-                     "--set", "target_dev_exact_match=0.001") == 0
+    assert run_train(dataset, run, "--set", "max_updates=40", "--set", "validate_every=2",
+                     "--set", "target_dev_exact_match=50") == 0
     records = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
-    end = records[-1]
     validations = [r for r in records if r["event"] == "validation"]
-    first_hit = next((r["step"] for r in validations if r["dev_exact_match"] >= 0.001), None)
-    if first_hit is None:  # the tiny model never got one dev episode right: trained to the cap
-        assert end["step"] == 50 and end["reached_target"] is False
-    else:
-        assert end["step"] == first_hit and end["reached_target"] is True
+    assert [v["dev_exact_match"] for v in validations] == [0.0, 0.0, 60.0]
+    assert records[-1]["event"] == "end" and records[-1]["step"] == 6 and records[-1]["reached_target"] is True
+    assert read_checkpoint(run / "last.pt")["step"] == 6
     assert set(validations[0]["dev_by_group"]) == {"verb", "adverb", "size_word", "color_word", "heavy_target",
                                                    "target_length"}
 

@@ -70,13 +70,18 @@ class RandomSource:
 
 def sample_episode(seed: int, grid_size: int = GRID_SIZE, command: str | None = None) -> Episode:
     """The episode of `seed` on a `grid_size` grid (see RandomSource); `command` fixes the
-    command (CommandError if it is not one of the 675) instead of drawing it."""
+    command (any paraphrase of one of the 675; CommandError otherwise) instead of drawing it."""
     from gscan_ros.data.commands import COMMANDS, parse_command
     from gscan_ros.data.sampling import possible_targets, sample_placements, sample_situations
     from gscan_ros.world import demonstrate
 
     rng = np.random.default_rng(seed)
-    command = parse_command(command) if command is not None else COMMANDS[rng.integers(len(COMMANDS))]
+    if command is not None:
+        from gscan_ros.language.canonical import canonicalize
+
+        command = parse_command(canonicalize(command).canonical)  # "push the small blue cylinder" too
+    else:
+        command = COMMANDS[rng.integers(len(COMMANDS))]
     targets = possible_targets(command)
     target = targets[rng.integers(len(targets))]
     if grid_size not in SUPPORTED_GRID_SIZES:

@@ -154,8 +154,10 @@ def restore_model(ckpt: dict, model: nn.Module | None = None) -> nn.Module:
     else:
         if model_kind(model) != ckpt["kind"]:
             raise CheckpointError(f"checkpoint holds a {ckpt['kind']} model, not a {model_kind(model)} model")
-        if model.cfg.to_dict() != ckpt["model_config"]:
-            diff = sorted(k for k, v in model.cfg.to_dict().items() if ckpt["model_config"].get(k) != v)
+        # settings added after the checkpoint was written take their defaults
+        saved = type(model.cfg).from_dict(ckpt["model_config"]).to_dict()
+        if model.cfg.to_dict() != saved:
+            diff = sorted(k for k, v in model.cfg.to_dict().items() if saved.get(k) != v)
             raise CheckpointError(f"checkpoint model config differs from the model's in {diff}")
         if model_vocabulary(model) != ckpt["vocabulary"]:
             raise CheckpointError(_vocabulary_diff(model_vocabulary(model), ckpt["vocabulary"]))

@@ -19,6 +19,19 @@ class ConfigError(GscanError):
     """A training config file or override that is malformed or names an unknown key."""
 
 
+def read_yaml(path: str | Path, what: str, error: type[GscanError]):
+    """The YAML document in `path`; `error` with one line naming `what` when the file
+    cannot be read, is not UTF-8 or is not YAML."""
+    try:
+        return yaml.safe_load(Path(path).read_text())
+    except OSError as exc:
+        raise error(f"cannot read {what}: {exc.strerror}") from None
+    except UnicodeDecodeError as exc:
+        raise error(f"{what} is not UTF-8 text (byte {exc.start})") from None
+    except yaml.YAMLError as exc:
+        raise error(f"{what} is not valid YAML: {' '.join(str(exc).split())}") from None
+
+
 @dataclass
 class TrainConfig:
     """Training run settings (defaults: the original's, GSCAN_SPEC §8.7, unless noted)."""
@@ -169,14 +182,7 @@ class TrainConfig:
         """YAML file (None: defaults) + 'key=value' overrides ('model.key=value' for model fields)."""
         data: dict = {}
         if path is not None:
-            try:
-                data = yaml.safe_load(Path(path).read_text()) or {}
-            except OSError as exc:
-                raise ConfigError(f"cannot read config {str(path)!r}: {exc.strerror}") from None
-            except UnicodeDecodeError as exc:
-                raise ConfigError(f"config {str(path)!r} is not UTF-8 text (byte {exc.start})") from None
-            except yaml.YAMLError as exc:
-                raise ConfigError(f"config {str(path)!r} is not valid YAML: {' '.join(str(exc).split())}") from None
+            data = read_yaml(path, f"config {str(path)!r}", ConfigError) or {}
             if not isinstance(data, dict):
                 raise ConfigError(f"config {str(path)!r} must be a mapping")
         if not isinstance(data.get("model") or {}, dict):

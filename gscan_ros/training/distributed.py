@@ -9,6 +9,7 @@ the identity, so the single-process path is the one it always was.
 """
 from __future__ import annotations
 
+import gc
 import os
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -101,6 +102,10 @@ def joined(device: str | torch.device = "cpu", backend: str | None = None) -> It
     try:
         yield Ranks(dist.get_rank(), dist.get_world_size(), dev)
     finally:
+        # A DistributedDataParallel wrapper sits in reference cycles and keeps the group
+        # alive; left to interpreter exit, its gloo threads abort the process
+        # ("terminate called without an active exception", ~1 exit in 10 here).
+        gc.collect()
         dist.destroy_process_group()
 
 

@@ -38,6 +38,7 @@ from typing import Callable
 import yaml
 
 from gscan_ros.errors import GscanError
+from gscan_ros.training.config import read_yaml
 
 CLI = (sys.executable, "-m", "gscan_ros.cli")
 # Test splits of each kind of dataset (letters A-H; split I is `target_lengths`, and the
@@ -168,14 +169,7 @@ def load_plan(path: str | Path, results: str | Path | None = None, data_root: st
 
     path = Path(path)
     where = f"plan {path}"
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except OSError as exc:
-        raise PlanError(f"cannot read {where}: {exc.strerror}") from None
-    except UnicodeDecodeError as exc:
-        raise PlanError(f"{where} is not UTF-8 text (byte {exc.start})") from None
-    except yaml.YAMLError as exc:
-        raise PlanError(f"{where} is not valid YAML: {' '.join(str(exc).split())}") from None
+    doc = read_yaml(path, where, PlanError)
     if not isinstance(doc, dict):
         raise PlanError(f"{where} must be a mapping with keys {list(_TOP_KEYS)}")
     _known(doc, _TOP_KEYS, where, "")

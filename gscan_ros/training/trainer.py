@@ -265,8 +265,8 @@ def _train(cfg: TrainConfig, data: str, files: RunFiles, resume: bool, progress:
         torch.manual_seed(int(np.random.SeedSequence([cfg.seed, ranks.rank, step]).generate_state(1)[0]))
     net = model
     if ranks.distributed:
-        # Some parameters are unused in some modes (att_state_* unless attention_state='add').
-        # The batch is already on the device: DDP is not asked to move it (device_ids None).
+        # Some parameters never get a gradient (att_out_b, cancelled by the softmax; att_state_*
+        # unless attention_state='add'). The model moves its batch itself (device_ids None).
         net = torch.nn.parallel.DistributedDataParallel(model, find_unused_parameters=True)
     if main:
         files.create(resume)

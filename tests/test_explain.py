@@ -176,7 +176,7 @@ def test_explain_situation_file_and_step(tmp_path, capsys):
     (["--situation", "setup.py", "--out", "x.png"], "--situation needs a COMMAND"),
     (["walk to a circle", "--step", "500", "--out", "x.png"], "--step must be at most"),
     (["walk to a circle", "--progression", ".", "--out", "x.png"], "no step_<N>.pt snapshots"),
-    (["walk to the circle", "--out", "x.png"], "not a gSCAN command"),
+    (["circle the walk", "--out", "x.png"], "not a gSCAN command"),
 ])
 def test_bad_arguments_are_one_line_errors(tmp_path, monkeypatch, capsys, argv, message):
     monkeypatch.chdir(tmp_path)

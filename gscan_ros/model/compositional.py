@@ -286,9 +286,12 @@ class VisualEncoder(nn.Module):
                 out.append(w[:, :, cut : cut + 2 * g - 1, cut : cut + 2 * g - 1])
         return torch.cat(out, 0)
 
-    def toeplitz(self) -> torch.Tensor:
-        """[cells*C, cells*F]: row (cell q, channel k) -> contribution to every (cell p, feature o)."""
+    def toeplitz(self, scale: float = 1.0) -> torch.Tensor:
+        """[cells*C, cells*F]: row (cell q, channel k) -> contribution to every (cell p, feature o),
+        times `scale` (applied to the small kernel bank, not the large matrix)."""
         bank = self._kernel_bank()  # [F, C, 2g-1, 2g-1]
+        if scale != 1.0:
+            bank = bank * scale
         canvas = bank.permute(2, 3, 1, 0).reshape(-1, bank.shape[1] * bank.shape[0])  # [position, (k, o)]
         if self._placement.device != canvas.device:  # not a buffer (no state_dict entry): moved on first use
             self._placement = self._placement.to(canvas.device)
@@ -300,10 +303,12 @@ class VisualEncoder(nn.Module):
     def bias(self) -> torch.Tensor:
         return torch.cat([conv.bias for conv in self.convs])
 
-    def _weight(self) -> torch.Tensor:
+    def _weight(self, scale: float = 1.0) -> torch.Tensor:
         """[cells*C + 1, cells*F]: the Toeplitz matrix plus a last row holding the bias of
-        every cell, so the bias rides in the embedding bag instead of a full extra pass."""
-        return torch.cat([self.toeplitz(), self.bias.repeat(self.cfg.cells)[None]])
+        every cell, so the bias rides in the embedding bag instead of a full extra pass;
+        all times `scale`."""
+        bias = self.bias if scale == 1.0 else self.bias * scale
+        return torch.cat([self.toeplitz(scale), bias.repeat(self.cfg.cells)[None]])
 
     def _inference_weight(self) -> torch.Tensor:
         """`_weight()` cached across no-grad calls (closed loop re-encodes every step)
@@ -329,7 +334,7 @@ class VisualEncoder(nn.Module):
         keep = None
         if self.training and self.cfg.cnn_dropout > 0:
             keep, p = _keep_mask(n * self.cfg.cells * self.cfg.feature_dim, self.cfg.cnn_dropout, indices.device)
-            weight = self._weight() * (1.0 / (1.0 - p))
+            weight = self._weight(1.0 / (1.0 - p))
         else:
             weight = self._weight() if torch.is_grad_enabled() else self._inference_weight()
         bias_row = self.cfg.cells * self.cfg.in_channels

@@ -98,7 +98,11 @@ def episode(stack):
     command = sample_episode(SEED).command
     actions = stack.run_command(command)
     for name in RECORDERS:
-        stack.probe.spin_until(lambda: stack.lines(f"{name}: recorded episode 0"), what=f"{name} to record")
+        try:
+            stack.probe.spin_until(lambda: stack.lines(f"{name}: recorded episode 0"), what=f"{name} to record")
+        except AssertionError as exc:
+            logs = "\n".join(f"--- {n}\n{p.output()[-2000:]}" for n, p in stack.processes.items())
+            raise AssertionError(f"{exc}\n{logs}") from None
     return command, actions
 
 

@@ -163,6 +163,13 @@ class EpisodeLog:
         eos = self.actions.add(t_ns, action, seq)
         if action is not Action.EOS:
             return None
+        return self.close(eos)
+
+    def close(self, eos: Stamped[Action]) -> EpisodeRecord | None:
+        """The episode the buffered `<eos>` closes. Topics arrive independently, so an
+        `<eos>` can come before the world's last replies: on IncompleteEpisode the caller
+        may call again when more observations have arrived."""
+        t_ns = eos.t_ns
         graph = self.graphs.latest_before(t_ns)
         if graph is None and self._ended_ns < 0:
             raise IncompleteEpisode("no command graph before <eos>")

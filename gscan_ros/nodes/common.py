@@ -41,6 +41,17 @@ LATCHED_QOS = QoSProfile(
     reliability=ReliabilityPolicy.RELIABLE,
     durability=DurabilityPolicy.TRANSIENT_LOCAL,
 )
+# The world simulator's state streams (observation, situation, world_image): latched for
+# late joiners like LATCHED_QOS, but the writer keeps the last 64 states, because a
+# reliable writer that keeps only the newest drops a state a busy recorder has not yet
+# acknowledged when the policy steps fast (~5 ms a step), and the recorder then cannot
+# pair the episode's actions. A depth-1 reader (the policy) still sees only the newest.
+LATCHED_STATE_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=64,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
 # A reader of latched topics that must see every state, not just the newest (recorders,
 # test probes): it gets the stored sample on joining and queues later ones while busy.
 LATCHED_LOG_QOS = QoSProfile(

@@ -69,6 +69,7 @@ class EpisodeRecorderNode(Node):
         ).open()
         self.episodes = 0
         self._log = EpisodeLog(capacity, images=include_images)
+        self._pending_eos = None  # an <eos> whose episode waits for the world's last replies
         # Latched topics first: their stored samples arrive as soon as we match.
         self.create_subscription(Header, WORLD_RESET, self.on_world_reset, LATCHED_LOG_QOS)
         self.create_subscription(String, SITUATION, self.on_situation, LATCHED_LOG_QOS)
@@ -95,6 +96,7 @@ class EpisodeRecorderNode(Node):
     @guarded
     def on_observation(self, msg: UInt8MultiArray, info: dict) -> None:
         self._keep(self._log.observations, msg, info)
+        self._retry_pending()
 
     @guarded
     def on_graph(self, msg: String, info: dict) -> None:
@@ -122,9 +124,30 @@ class EpisodeRecorderNode(Node):
         except UnpairedAction as exc:
             self.status.reject(f"ignored action {quote(msg.data)} sent at {t_ns}: {exc}")
             return
-        except IncompleteEpisode as exc:
-            self.status.reject(f"episode ending at {t_ns} not recorded: {exc}")
+        except IncompleteEpisode:
+            # the world's last replies may still be on their way (topics arrive independently)
+            self._pending_eos = self._log.actions.latest_before(t_ns, inclusive=True)
             return
+        if record is not None:
+            self._write(record)
+
+    def _retry_pending(self) -> None:
+        """Close a pending `<eos>` once the observations it waited for have arrived."""
+        eos = self._pending_eos
+        if eos is None:
+            return
+        try:
+            record = self._log.close(eos)
+        except IncompleteEpisode as exc:
+            if self._log.graphs.latest_before(2**63 - 1).t_ns > eos.t_ns:  # a new episode began: give up
+                self._pending_eos = None
+                self.status.reject(f"episode ending at {eos.t_ns} not recorded: {exc}")
+            return
+        except UnpairedAction as exc:
+            self._pending_eos = None
+            self.status.reject(f"ignored action '<eos>' sent at {eos.t_ns}: {exc}")
+            return
+        self._pending_eos = None
         if record is not None:
             self._write(record)
 

@@ -26,6 +26,7 @@ from gscan_ros.nodes.common import (
     ACTION,
     EVENT_QOS,
     LATCHED_QOS,
+    LATCHED_STATE_QOS,
     OBSERVATION,
     RESET_WORLD,
     SITUATION,
@@ -67,9 +68,9 @@ class WorldSimulatorNode(Node):
         self.status = StatusReporter(self)
         self._source = episode_source(dataset, split, index, seed, grid_size)
         self._reset_pub = self.create_publisher(Header, WORLD_RESET, LATCHED_QOS)
-        self._observation_pub = self.create_publisher(UInt8MultiArray, OBSERVATION, LATCHED_QOS)
-        self._situation_pub = self.create_publisher(String, SITUATION, LATCHED_QOS)
-        self._image_pub = self.create_publisher(Image, WORLD_IMAGE, LATCHED_QOS)
+        self._observation_pub = self.create_publisher(UInt8MultiArray, OBSERVATION, LATCHED_STATE_QOS)
+        self._situation_pub = self.create_publisher(String, SITUATION, LATCHED_STATE_QOS)
+        self._image_pub = self.create_publisher(Image, WORLD_IMAGE, LATCHED_STATE_QOS)
         self._world: World | None = None
         self._reset_ns = 0
         self._actions = 0  # actions applied since the last reset or <eos>

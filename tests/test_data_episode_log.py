@@ -185,3 +185,17 @@ def test_buffer_is_bounded_and_sorted():
     assert buf.first_after(4).t_ns == 5
     buf.drop_until(4)
     assert [i.t_ns for i in buf.between(0, 100)] == [4, 5]
+
+
+def test_an_eos_that_arrives_before_the_last_replies_closes_once_they_arrive():
+    events, _ = lockstep_events(actions=(WALK, TURN, EOS))
+    log = EpisodeLog(100)
+    late = [e for e in events if e[0] == "observations" and e[2] == "o2"]  # the reply to the last action
+    eos_event = next(e for e in events if e[0] == "actions" and e[2] is EOS)
+    feed(log, [e for e in events if e not in late and e is not eos_event])
+    with pytest.raises(IncompleteEpisode):
+        log.add_action(*eos_event[1:])
+    for kind, t, value in late:
+        getattr(log, kind).add(t, value)
+    record = log.close(log.actions.latest_before(eos_event[1], inclusive=True))
+    assert record.outcome == COMPLETE and [s.observation.value for s in record.steps] == ["o0", "o1", "o2"]

@@ -525,6 +525,16 @@ def _lz4():
     return lz4.frame
 
 
+def _keep_definition(op: int, buffer, start: int, end: int, schemas: dict, channels: dict) -> None:
+    """Store a schema or channel record (body buffer[start:end]) by id; ignore other records."""
+    if op == _OP_SCHEMA:
+        schema = _read_record(Schema, buffer, start, end)
+        schemas[schema.id] = schema
+    elif op == _OP_CHANNEL:
+        channel = _read_record(Channel, buffer, start, end)
+        channels[channel.id] = channel
+
+
 def _read_record(cls, buffer, start: int, end: int):
     """Parse one schema/channel/chunk-index body with the mcap library's reader."""
     try:
@@ -670,14 +680,10 @@ class McapScan:
                 end = pos + 9 + length
                 if end > footer:
                     return damaged
-                if op == _OP_SCHEMA:
-                    schema = _read_record(Schema, data, pos + 9, end)
-                    schemas[schema.id] = schema
-                elif op == _OP_CHANNEL:
-                    channel = _read_record(Channel, data, pos + 9, end)
-                    channels[channel.id] = channel
-                elif op == _OP_CHUNK_INDEX:
+                if op == _OP_CHUNK_INDEX:
                     indexes.append(_read_record(ChunkIndex, data, pos + 9, end))
+                else:
+                    _keep_definition(op, data, pos + 9, end, schemas, channels)
                 pos = end
         except (_Damage, struct.error):
             return damaged
@@ -738,12 +744,8 @@ class McapScan:
                 if length < _MESSAGE.size:
                     raise _Damage("short message record")
                 messages.append((*unpack_message(records, pos + 9), records[pos + 9 + _MESSAGE.size : end]))
-            elif op == _OP_SCHEMA:
-                schema = _read_record(Schema, records, pos + 9, end)
-                schemas[schema.id] = schema
-            elif op == _OP_CHANNEL:
-                channel = _read_record(Channel, records, pos + 9, end)
-                channels[channel.id] = channel
+            else:
+                _keep_definition(op, records, pos + 9, end, schemas, channels)
             pos = end
         return messages, schemas, channels
 

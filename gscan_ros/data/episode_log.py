@@ -187,6 +187,10 @@ class EpisodeLog:
         self._end(record)
         return record
 
+    def superseded(self, eos: Stamped[Action]) -> bool:
+        """A command graph newer than `eos` arrived: its episode will not complete any more."""
+        return self.graphs.first_after(eos.t_ns) is not None
+
     def add_reset(self, reset_ns: int) -> EpisodeRecord | None:
         """The world was reset at `reset_ns`: the episode running then, recorded as aborted."""
         if reset_ns <= self._ended_ns:

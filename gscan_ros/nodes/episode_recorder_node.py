@@ -139,7 +139,7 @@ class EpisodeRecorderNode(Node):
         try:
             record = self._log.close(eos)
         except IncompleteEpisode as exc:
-            if self._log.graphs.latest_before(2**63 - 1).t_ns > eos.t_ns:  # a new episode began: give up
+            if self._log.superseded(eos):
                 self._pending_eos = None
                 self.status.reject(f"episode ending at {eos.t_ns} not recorded: {exc}")
             return

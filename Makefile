@@ -17,12 +17,14 @@ export PYTHONUNBUFFERED := 1
 export ROS_LOG_DIR ?= $(CURDIR)/.ros_log
 export MPLBACKEND := Agg
 
-.PHONY: help setup test demo bench clean
+.PHONY: help setup test test-quick lint demo bench clean
 
 help:
 	@echo "make demo   run the ROS stack on the shipped model and show the episode"
 	@echo "make test   run the test suite"
 	@echo "make bench  run the benchmarks in bench/ (prints figures)"
+	@echo "make test-quick  the tests not marked slow, e2e or packaging (setup.cfg)"
+	@echo "make lint   ruff check (ruff.toml)"
 
 setup: $(STAMP) $(WORDNET)
 
@@ -38,6 +40,12 @@ $(WORDNET):
 
 test: setup
 	$(PY) -m pytest -q tests
+
+test-quick: setup
+	$(PY) -m pytest -q -m "not slow and not e2e and not packaging" tests
+
+lint: setup
+	$(VENV)/bin/ruff check .
 
 demo: setup
 	$(VENV)/bin/gscan-ros demo

@@ -40,14 +40,17 @@ def main() -> None:
         size_mb = sum(p.stat().st_size for p in info.mcap_paths) / 1e6
         print(f"episodes: {len(episodes)}, messages: {info.message_count}, mcap: {size_mb:.1f} MB"
               f" ({size_mb * 1e6 / len(episodes):.0f} B/episode)")
-        print(f"write:              {len(episodes) / seconds:10.0f} episodes/s  {info.message_count / seconds:10.0f} messages/s")
+        print(f"write:              {len(episodes) / seconds:10.0f} episodes/s"
+              f"  {info.message_count / seconds:10.0f} messages/s")
 
         _, seconds = timed(lambda: list(iter_bag_episodes(bag)))
-        print(f"read episodes:      {info.message_count / seconds:10.0f} messages/s  {len(episodes) / seconds:10.0f} episodes/s")
+        print(f"read episodes:      {info.message_count / seconds:10.0f} messages/s"
+              f"  {len(episodes) / seconds:10.0f} episodes/s")
 
         reader = BagEpisodeReader(bag, decode_states=True)
         _, seconds = timed(lambda: list(reader.records()))
-        print(f"read with states:   {info.message_count / seconds:10.0f} messages/s  {len(episodes) / seconds:10.0f} episodes/s")
+        print(f"read with states:   {info.message_count / seconds:10.0f} messages/s"
+              f"  {len(episodes) / seconds:10.0f} episodes/s")
 
         _, seconds = timed(lambda: load_episode_cache(bag))
         print(f"cache build:        {seconds:10.2f} s")

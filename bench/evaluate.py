@@ -1,7 +1,7 @@
 """Closed-loop evaluation throughput: batched (many live episodes per forward) vs batch 1.
 
     .venv/bin/python bench/evaluate.py [--checkpoint CKPT] [--data DIR] [--episodes 512] [--threads 2]
-                                       [--max-steps 120] [--device cpu|cuda|auto]
+                                       [--max-steps N] [--device cpu|cuda|auto]
 
 Defaults: the shipped model and 3000 freshly generated candidate examples (seed 0);
 episodes from the `test` split. The model decides when episodes stop, so a trained
@@ -15,9 +15,10 @@ import argparse
 import resource
 import time
 
-from _data import dataset_or_generated
-
 from gscan_ros.model.runtime import DEVICES
+from gscan_ros.training.evaluate import MAX_STEPS
+
+from _data import dataset_or_generated
 
 
 def main() -> None:
@@ -29,7 +30,7 @@ def main() -> None:
     ap.add_argument("--single-episodes", type=int, default=64, help="episodes for the batch-1 measurement")
     ap.add_argument("--batch-size", type=int, default=1024)
     ap.add_argument("--threads", type=int, default=2, help="torch intra-op threads")
-    ap.add_argument("--max-steps", type=int, default=120, help="decoding cap per episode (+1 for EOS)")
+    ap.add_argument("--max-steps", type=int, default=MAX_STEPS, help="decoding cap per episode (+1 for EOS)")
     ap.add_argument("--device", default="cpu", choices=DEVICES, help="where the network runs")
     args = ap.parse_args()
 

@@ -1,7 +1,7 @@
 """Flood the stack with bad commands: every one must be answered on `status`, memory must stay flat.
 
 Starts world_simulator_node, parser_node and policy_node as separate processes and
-publishes `--rate` commands per second for `--seconds` on `/command`: unknown words,
+sends (GscanCommander.send_command) `--rate` commands per second for `--seconds`: unknown words,
 empty strings, 10 kB strings and ungrammatical ones, plus one valid command in 100
 (each preempts the policy's running episode). Prints how many rejections came back on
 `status`, whether every node survived, and each node's resident memory after the first
@@ -18,9 +18,10 @@ import tempfile
 import time
 from pathlib import Path
 
+from _ros import NodeProcess, fresh_domain_id, ros_env
 from latency import resolve_checkpoint
 
-from gscan_ros.nodes.harness import NodeProcess, Probe, fresh_domain_id, ros_env
+from gscan_ros.errors import GscanError
 
 BAD_COMMANDS = (
     "walk to a purple circle",
@@ -49,9 +50,7 @@ def main() -> int:
     ap.add_argument("--checkpoint", type=Path, default=None)
     args = ap.parse_args()
 
-    from std_msgs.msg import String
-
-    from gscan_ros.nodes.common import EVENT_QOS
+    from gscan_ros.nodes.commander import GscanCommander
 
     tmp = Path(tempfile.mkdtemp(prefix="gscan_flood_"))
     checkpoint, label = resolve_checkpoint(args.checkpoint)
@@ -61,17 +60,13 @@ def main() -> int:
         "parser_node": NodeProcess("parser_node", env, tmp, {"checkpoint": checkpoint}),
         "policy_node": NodeProcess("policy_node", env, tmp, {"checkpoint": checkpoint, "max_steps": 30}),
     }
-    probe = Probe(int(env["ROS_DOMAIN_ID"]))
-    rejected = []
-    probe.node.create_subscription(
-        String, "status", lambda m: rejected.append(1) if m.data.startswith("parser_node: rejected") else None,
-        EVENT_QOS,
-    )
-    pub = probe.node.create_publisher(String, "command", EVENT_QOS)
+    commander = GscanCommander.connect(int(env["ROS_DOMAIN_ID"]))
+
+    def rejected() -> int:
+        return sum(line.startswith("parser_node: rejected") for line in commander.status_log)
+
     try:
-        probe.wait_for_endpoints({"/command": {"parser_node"}, "/observation": {"policy_node"},
-                                  "/action": {"world_simulator_node"}})
-        probe.spin_until(lambda: pub.get_subscription_count() > 0, what="the parser")
+        commander.wait_until_ready(timeout=90)
         before = {}
         total = int(args.rate * args.seconds)
         bad_sent = 0
@@ -82,33 +77,33 @@ def main() -> int:
             if i == args.rate:  # after one second of warm-up (first graphs, allocator pools)
                 before = {name: rss_mib(p.process.pid) for name, p in nodes.items()}
             if i % VALID_EVERY == VALID_EVERY - 1:
-                pub.publish(String(data=next(valid)))
+                commander.send_command(next(valid))
             else:
-                pub.publish(String(data=next(bad)))
+                commander.send_command(next(bad))
                 bad_sent += 1
-            # Pace to the rate, serving the probe's subscription while ahead of schedule.
-            while (ahead := start + (i + 1) / args.rate - time.monotonic()) > 0:
-                probe.executor.spin_once(timeout_sec=ahead)
+            # Pace to the rate, serving the commander's subscriptions while ahead of schedule.
+            commander.spin_for(start + (i + 1) / args.rate - time.monotonic())
         sent_s = time.monotonic() - start
         try:
-            probe.spin_until(lambda: len(rejected) >= bad_sent, timeout=30, what=f"{bad_sent} rejections")
-        except AssertionError as exc:
+            commander.spin_until(lambda: rejected() >= bad_sent, timeout=30, what=f"{bad_sent} rejections")
+        except GscanError as exc:
             print(f"incomplete: {exc}")
         drained_s = time.monotonic() - start
         after = {name: rss_mib(p.process.pid) for name, p in nodes.items()}
         alive = {name: p.alive() for name, p in nodes.items()}
+        rejections = rejected()
     finally:
-        probe.close()
+        commander.shutdown()
         for node in nodes.values():
             node.stop(signal.SIGINT)
 
     print(f"model: {label}")
     print(f"sent {total} commands ({bad_sent} bad) in {sent_s:.1f} s = {total / sent_s:.0f}/s; "
-          f"{len(rejected)} rejections on status after {drained_s:.1f} s")
+          f"{rejections} rejections on status after {drained_s:.1f} s")
     for name in nodes:
         print(f"{name:22s} alive={alive[name]}  RSS {before[name]:7.1f} MiB -> {after[name]:7.1f} MiB "
               f"({after[name] - before[name]:+.1f})")
-    return 0 if len(rejected) == bad_sent and all(alive.values()) else 1
+    return 0 if rejections == bad_sent and all(alive.values()) else 1
 
 
 if __name__ == "__main__":

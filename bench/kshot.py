@@ -80,7 +80,7 @@ def main() -> None:
                             str(args.eval_examples), "--out", str(out), "--no-predictions", "--quiet"], check=True)
         res = json.loads((out / "results.json").read_text())["splits"]
         rows.append((k, res["adverb_1"], res["test"]))
-    print(f"\n| k | G examples | G exact match | G token acc. | A exact match | updates |")
+    print("\n| k | G examples | G exact match | G token acc. | A exact match | updates |")
     print("|---:|---:|---:|---:|---:|---:|")
     for k, g, a in rows:
         print(f"| {k} | {g['examples']:,} | {g['exact_match']:.2f} | {g['token_accuracy']:.2f} | "

@@ -1,8 +1,8 @@
 """Latency of the ROS stack across processes: command -> first action, and per lock-step step.
 
 Starts world_simulator_node, parser_node and policy_node as separate processes (Fast DDS
-on loopback, the fast-discovery profile), sends sampled gSCAN commands one episode at a
-time, and times on DDS timestamps:
+on loopback, the fast-discovery profile), runs sampled gSCAN commands one episode at a
+time with a GscanCommander (reset_world between them), and times on DDS timestamps:
 
 - first action: command published -> first action received (parse + graph + reset + step);
 - step: action t received -> action t+1 received (world step and publish, one model step);
@@ -21,8 +21,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-from gscan_ros.nodes.harness import NodeProcess, Probe, fresh_domain_id, ros_env
+from _ros import NodeProcess, fresh_domain_id, ros_env
 
 
 def percentiles(ms: list[float]) -> str:
@@ -72,11 +71,8 @@ def main() -> int:
     ap.add_argument("--no-images", action="store_true", help="world node does not render world_image")
     args = ap.parse_args()
 
-    from std_msgs.msg import String
-    from std_srvs.srv import Trigger
-
-    from gscan_ros.nodes.common import EVENT_QOS
     from gscan_ros.data.sources import sample_episode
+    from gscan_ros.nodes.commander import GscanCommander
 
     tmp = Path(tempfile.mkdtemp(prefix="gscan_latency_"))
     checkpoint, label = resolve_checkpoint(args.checkpoint)
@@ -86,34 +82,23 @@ def main() -> int:
         NodeProcess("parser_node", env, tmp, {"checkpoint": checkpoint}),
         NodeProcess("policy_node", env, tmp, {"checkpoint": checkpoint, "max_steps": args.max_steps}),
     ]
-    probe = Probe(int(env["ROS_DOMAIN_ID"]))
-    received: list[tuple[int, str]] = []  # (DDS receive time, token)
-    probe.node.create_subscription(
-        String, "action", lambda msg, info: received.append((info["received_timestamp"], msg.data)), EVENT_QOS
-    )
-    commands_pub = probe.node.create_publisher(String, "command", EVENT_QOS)
-    reset = probe.node.create_client(Trigger, "reset_world")
+    commander = GscanCommander.connect(int(env["ROS_DOMAIN_ID"]))
     first_ms, step_ms, commands, situations = [], [], [], []
     try:
-        probe.wait_for_endpoints({"/command": {"parser_node"}, "/observation": {"policy_node"},
-                                  "/action": {"world_simulator_node"}})
-        probe.spin_until(reset.service_is_ready, what="reset_world")
-        probe.spin_until(lambda: commands_pub.get_subscription_count() > 0, what="the parser")
+        commander.wait_until_ready(timeout=90)
         for episode_index in range(args.episodes):
             episode = sample_episode(episode_index)  # the world serves seed i after i resets
             commands.append(episode.command)
             situations.append(episode.situation)
-            start = len(received)
-            t0 = time.time_ns()
-            commands_pub.publish(String(data=episode.command))
-            probe.spin_until(lambda: any(tok == "<eos>" for _, tok in received[start:]), what="<eos>")
-            times = [t for t, _ in received[start:]]
-            first_ms.append((times[0] - t0) / 1e6)
+            result = commander.run_episode(episode.command, timeout=60)
+            if not result.finished:
+                raise SystemExit(f"episode {episode_index}: {result.outcome} ({result.reason or 'no <eos>'})")
+            times = result.action_times_ns
+            first_ms.append((times[0] - result.sent_ns) / 1e6)
             step_ms += [(b - a) / 1e6 for a, b in zip(times, times[1:])]
-            future = reset.call_async(Trigger.Request())
-            probe.spin_until(future.done, what="reset")
+            commander.reset_world()
     finally:
-        probe.close()
+        commander.shutdown()
         for node in nodes:
             node.stop(signal.SIGINT)
 

@@ -15,7 +15,7 @@ import time
 from collections.abc import Callable
 
 from gscan_ros.errors import CommandError
-from gscan_ros.language import Lexicon, all_commands, available_parsers, get_parser, tokenize
+from gscan_ros.language import LEXICONS, Lexicon, all_commands, available_parsers, get_parser, tokenize
 
 
 def rate(parse_pass: Callable[[], None], passes: int, n: int) -> float:
@@ -36,11 +36,11 @@ def parse_all(parser, commands) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--passes", type=int, default=3, help="passes over the 675 commands per measurement")
-    ap.add_argument("--lexicon", choices=("wordnet", "none"), default="wordnet")
+    ap.add_argument("--lexicon", choices=LEXICONS, default="wordnet")
     args = ap.parse_args()
 
     start = time.perf_counter()
-    lexicon = Lexicon.from_wordnet() if args.lexicon == "wordnet" else Lexicon.none()
+    lexicon = Lexicon.named(args.lexicon)
     print(f"lexicon ({args.lexicon}) built in {time.perf_counter() - start:.2f} s")
     commands = all_commands()
     rejects = tuple(" ".join(reversed(tokenize(command))) for command in commands)
@@ -50,8 +50,13 @@ def main() -> None:
         for inputs in (commands, rejects):
             warm_parser = get_parser(name, lexicon)
             parse_all(warm_parser, inputs)  # fill the cache
-            row += [rate(lambda: parse_all(get_parser(name, lexicon), inputs), args.passes, len(inputs)),
-                    rate(lambda: parse_all(warm_parser, inputs), args.passes, len(inputs))]
+            def cold(name=name, inputs=inputs):
+                return parse_all(get_parser(name, lexicon), inputs)
+
+            def warm(parser=warm_parser, inputs=inputs):
+                return parse_all(parser, inputs)
+
+            row += [rate(cold, args.passes, len(inputs)), rate(warm, args.passes, len(inputs))]
         print(f"{name:<14}" + "".join(f"{r:>16,.0f}" for r in row))
 
     long_word = "walk to a " + "x" * 10_000

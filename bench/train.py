@@ -19,9 +19,10 @@ import subprocess
 import sys
 import time
 
-from _data import dataset_or_generated
-
 from gscan_ros.model.runtime import DEVICES
+from gscan_ros.training.batches import BATCHING
+
+from _data import dataset_or_generated
 
 
 def measure(data: str, mode: str, updates: int, warmup: int, threads: int, batch_size: int,
@@ -29,23 +30,25 @@ def measure(data: str, mode: str, updates: int, warmup: int, threads: int, batch
     import numpy as np
     import torch
 
+    from gscan_ros.language.lexicon import Lexicon
     from gscan_ros.language.registry import get_parser
     from gscan_ros.model.runtime import configure_torch, resolve_device
     from gscan_ros.training.batches import EpisodeStore, batch_order
     from gscan_ros.training.config import TrainConfig
-    from gscan_ros.training.trainer import iter_split, keep_freed_memory, make_lexicon, new_model
+    from gscan_ros.training.step import TrainStep
+    from gscan_ros.training.trainer import iter_split, keep_freed_memory, new_model
 
     configure_torch(threads)
     dev = resolve_device(device)
     keep_freed_memory()
     torch.manual_seed(0)
-    lexicon = make_lexicon("wordnet")
+    lexicon = Lexicon.named("wordnet")
     parser = get_parser("semantic", lexicon)
     t0 = time.time()
     store = EpisodeStore(iter_split(data, "train"), parser)
     cache_s = time.time() - t0
-    model = new_model(TrainConfig.load(config), parser, lexicon, store).to(dev).train()
-    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
+    model = new_model(TrainConfig.load(config), parser, lexicon, store).to(dev)
+    update = TrainStep(model, torch.optim.Adam(model.parameters(), lr=1e-3), store)
     order = batch_order(store, batch_size, mode, np.random.default_rng(0))
     order = sorted(order, key=len, reverse=True)  # full batches first (per_command: the original's 200-episode chunks)
     if len(order) < warmup + updates:
@@ -53,10 +56,7 @@ def measure(data: str, mode: str, updates: int, warmup: int, threads: int, batch
     examples, steps, elapsed = 0, 0, 0.0
     for i, ids in enumerate(order[: warmup + updates]):
         start = time.time()
-        out = model.teacher_forcing(store.batch(ids, model.table, model.teacher_quantum))
-        opt.zero_grad()
-        out.loss.backward()
-        opt.step()
+        update(ids)
         if dev.type == "cuda":  # the time of the work, not of queueing it
             torch.cuda.synchronize(dev)
         if i >= warmup:
@@ -80,7 +80,7 @@ def main() -> None:
     ap.add_argument("--config", help="training config whose model is measured (default: the built-in defaults; "
                                      "configs/length.yaml for split I data)")
     ap.add_argument("--device", default="cpu", choices=DEVICES, help="where the network runs")
-    ap.add_argument("--mode", choices=("mixed", "per_command"), help="(internal) measure one mode in this process")
+    ap.add_argument("--mode", choices=BATCHING, help="(internal) measure one mode in this process")
     args = ap.parse_args()
     if args.mode:
         print(json.dumps(measure(args.data, args.mode, args.updates, args.warmup, args.threads, args.batch_size,
@@ -88,7 +88,7 @@ def main() -> None:
         return
     with dataset_or_generated(args.data, examples=6000) as data:
         results = {}
-        for mode in ("mixed", "per_command"):
+        for mode in BATCHING:
             cmd = [sys.executable, __file__, "--data", data, "--mode", mode, "--updates", str(args.updates),
                    "--warmup", str(args.warmup), "--threads", str(args.threads), "--batch-size", str(args.batch_size),
                    "--device", args.device, *(["--config", args.config] if args.config else [])]
@@ -96,7 +96,8 @@ def main() -> None:
     for mode, r in results.items():
         print(f"{mode:12s} {r['examples_per_s']:7.1f} examples/s  ({r['steps_per_s']:.0f} steps/s, mean batch "
               f"{r['mean_batch']:.0f}, {r['mean_episode_steps']:.1f} steps/episode)  peak RSS {r['peak_rss_mb']:.0f} MB"
-              f"  [{r['device']}, threads {r['threads']}, state cache {r['state_cache_s']} s for {r['train_episodes']} episodes]")
+              f"  [{r['device']}, threads {r['threads']}, state cache {r['state_cache_s']} s for "
+              f"{r['train_episodes']} episodes]")
     ratio = results["mixed"]["examples_per_s"] / results["per_command"]["examples_per_s"]
     print(f"mixed / per_command throughput ratio: {ratio:.2f}")
 

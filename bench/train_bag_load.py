@@ -26,13 +26,14 @@ def main() -> None:
 
     from gscan_ros.data.bag_cache import cache_path
     from gscan_ros.data.io import is_bag, split_bags
+    from gscan_ros.language.lexicon import Lexicon
     from gscan_ros.language.registry import get_parser
     from gscan_ros.training.batches import EpisodeStore
     from gscan_ros.training.config import TrainConfig
-    from gscan_ros.training.trainer import load_split, load_train_store, make_lexicon
+    from gscan_ros.training.trainer import load_split, load_train_store
 
     torch.set_num_threads(1)
-    parser = get_parser("semantic", make_lexicon("wordnet"))
+    parser = get_parser("semantic", Lexicon.named("wordnet"))
     cfg = TrainConfig(train_split=args.split)
     with dataset_or_generated(args.data, examples=10_000, seed=1, fmt="mcap") as data:
         bag = data if is_bag(data) else split_bags(data)[args.split]
@@ -46,7 +47,8 @@ def main() -> None:
         if args.old:
             t0 = time.perf_counter()
             store = EpisodeStore(load_split(data, args.split), parser)
-            print(f"{'old path (Episodes + World replay)':36s} {time.perf_counter() - t0:7.2f} s  {len(store)} episodes")
+            elapsed = time.perf_counter() - t0
+            print(f"{'old path (Episodes + World replay)':36s} {elapsed:7.2f} s  {len(store)} episodes")
 
 
 if __name__ == "__main__":

@@ -4,6 +4,7 @@ from __future__ import annotations
 from std_msgs.msg import String
 
 from gscan_ros.world.types import Action
+from msg_adapters.cdr import cdr_to_msg
 
 
 def action_to_msg(action: Action) -> String:
@@ -14,3 +15,8 @@ def action_to_msg(action: Action) -> String:
 def msg_to_action(msg: String) -> Action:
     """Parse the token; an unknown token raises InvalidActionError naming it."""
     return Action.from_token(msg.data)
+
+
+def cdr_to_action(data: bytes) -> Action:
+    """msg_to_action of a serialized std_msgs/String (a bag's `/action` record)."""
+    return msg_to_action(cdr_to_msg(data, String))

@@ -12,6 +12,7 @@ import numpy as np
 from std_msgs.msg import MultiArrayDimension, UInt8MultiArray
 
 from gscan_ros.world.types import NUM_CHANNELS, SUPPORTED_GRID_SIZES
+from msg_adapters.cdr import cdr_to_msg
 from msg_adapters.errors import MessageFormatError
 
 OBSERVATION_LABELS: tuple[str, ...] = ("row", "col", "channel")
@@ -68,3 +69,8 @@ def msg_to_observation(msg: UInt8MultiArray, *, shape: tuple[int, ...] | None = 
     if data.size != strides[0]:
         raise MessageFormatError(f"observation data has {data.size} bytes, layout needs {strides[0]}")
     return data.reshape(sizes)
+
+
+def cdr_to_observation(data: bytes, *, shape: tuple[int, ...] | None = None) -> np.ndarray:
+    """msg_to_observation of a serialized UInt8MultiArray (a bag's `/observation` record)."""
+    return msg_to_observation(cdr_to_msg(data, UInt8MultiArray), shape=shape)

@@ -121,7 +121,8 @@ def kill_writer(bag: Path, seed: int = 11, flush_at: int = 41, extra: int = 9) -
     episodes, write `extra` more and SIGKILL it (a chunk in progress, no summary,
     metadata.yaml still `recording`); returns the number of episodes flushed."""
     child = subprocess.Popen(
-        [sys.executable, "-c", WRITER.format(tests=str(TESTS), bag=str(bag), seed=seed, flush_at=flush_at, extra=extra)],
+        [sys.executable, "-c",
+         WRITER.format(tests=str(TESTS), bag=str(bag), seed=seed, flush_at=flush_at, extra=extra)],
         stdout=subprocess.PIPE,
         text=True,
         start_new_session=True,

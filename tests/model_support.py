@@ -2,9 +2,10 @@
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from gscan_ros.language.graph import CommandGraph, GraphEdge, GraphNode
-from gscan_ros.model.compositional import ModuleSpec, ModuleTable
+from gscan_ros.model.compositional import CompositionalNetwork, ModelConfig, ModuleSpec, ModuleTable
 
 SIZE_KEY = "big|small"
 
@@ -44,6 +45,12 @@ def table(graphs=GRAPHS) -> ModuleTable:
     )
 
 
+def make_net(cfg=None, graphs=GRAPHS, seed=0):
+    """A seeded network (eval mode) with the modules of `graphs`, size words sharing SIZE_KEY."""
+    torch.manual_seed(seed)
+    return CompositionalNetwork(cfg or ModelConfig(), table(graphs)).eval()
+
+
 def random_states(rng: np.random.Generator, n: int) -> np.ndarray:
     """n one-hot gSCAN-like encodings: a few objects (size, shape, color bits) + agent + heading."""
     out = np.zeros((n, 6, 6, 16), dtype=np.uint8)
@@ -58,6 +65,45 @@ def random_states(rng: np.random.Generator, n: int) -> np.ndarray:
         out[i, r, col, 11] = 1
         out[i, r, col, 12 + rng.integers(0, 4)] = 1
     return out
+
+
+def episode_states(rng: np.random.Generator, length: int) -> np.ndarray:
+    """`length` states of one episode: the objects stay put, the agent (and its heading)
+    moves, as teacher forcing sees them (most set bits shared by every state)."""
+    objects = random_states(rng, 1)[0]
+    objects[..., 11:] = 0
+    out = np.repeat(objects[None], length, 0)
+    for t in range(length):
+        r, col = divmod(int(rng.integers(36)), 6)
+        out[t, r, col, 11] = 1
+        out[t, r, col, 12 + rng.integers(0, 4)] = 1
+    return out
+
+
+def teacher_batch(table: ModuleTable, graphs: list[CommandGraph], states: list[np.ndarray],
+                  targets: list[np.ndarray], quantum: int = 1):
+    """The TeacherBatch of episodes (graph, states [T+1, 6, 6, 16], targets [T+1]) as
+    `EpisodeStore.batch` builds it, and `order`: batch row r holds episode order[r]."""
+    from gscan_ros.model.layout import Layout
+    from gscan_ros.model.sparse_encoder import sparse_states
+    from gscan_ros.model.teacher_forcing import TeacherBatch
+
+    lengths = np.array([len(t) for t in targets])
+    order = np.argsort(-lengths, kind="stable")
+    lengths = lengths[order]
+    alive = np.array([(lengths > t).sum() for t in range(int(lengths[0]))])
+    active = np.minimum(-(-alive // quantum) * quantum, len(graphs))
+    rows = np.concatenate([np.arange(n) for n in active])
+    steps = np.repeat(np.arange(int(lengths[0])), active)
+    valid = steps < lengths[rows]
+    empty = np.zeros_like(states[0][0])
+    packed = np.stack([states[order[r]][s] if v else empty for r, s, v in zip(rows, steps, valid)])
+    packed_targets = np.array([targets[order[r]][s] if v else -1 for r, s, v in zip(rows, steps, valid)])
+    idx, off = sparse_states(packed)
+    batch = TeacherBatch(Layout([graphs[i] for i in order], table), idx, off, torch.from_numpy(packed_targets),
+                         torch.from_numpy(rows), torch.from_numpy(valid), torch.from_numpy(lengths.astype(np.float32)),
+                         [int(n) for n in active])
+    return batch, order
 
 
 def walk_episodes(n: int, seed: int = 0, max_distance: int = 3):

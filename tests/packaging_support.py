@@ -18,7 +18,7 @@ from unittest import mock
 
 from ament_index_python.packages import get_package_prefix
 
-from gscan_ros.nodes.harness import STARTUP_TIMEOUT, VENV_BIN, NodeProcess, fresh_domain_id, ros_env
+from ros_helpers import STARTUP_TIMEOUT, VENV_BIN, NodeProcess, fresh_domain_id, ros_env
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGE = "gscan_ros"

@@ -1,8 +1,217 @@
-"""Test-only ROS helpers; the process harness itself is `gscan_ros.nodes.harness`."""
+"""Test support for ROS: node processes, a probe node, parameters, a tiny checkpoint.
+
+Used by the node and end-to-end tests and (through bench/_ros.py) the ROS benchmarks.
+It encodes this project's rules for DDS on shared machines (docs/ros.md "Testing"):
+discovery stays on loopback, every run uses its own domain and the fast-discovery Fast
+DDS profile, waits are bounded and keyed on messages or graph state (never fixed
+sleeps), and node processes run in their own session so they are stopped as a process
+group (SIGINT, then SIGKILL and `fastdds shm clean`).
+
+Importing this module sets ROS_AUTOMATIC_DISCOVERY_RANGE, FASTRTPS_DEFAULT_PROFILES_FILE
+and ROS_LOG_DIR for the current process when unset, so import it before any rclpy.init.
+(It lived in the installed package as gscan_ros/nodes/harness.py; an import with such
+side effects belongs to the tests.)
+"""
 from __future__ import annotations
 
+import itertools
+import os
+import signal
+import subprocess
+import sys
+import tempfile
 import time
+from collections import defaultdict
+from collections.abc import Callable
 from pathlib import Path
+
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+
+
+def _fast_discovery_profile() -> Path:
+    """config/fastdds_fast_discovery.xml of the source tree, else of the installed share/."""
+    name = Path("config") / "fastdds_fast_discovery.xml"
+    source = Path(__file__).resolve().parents[1] / name
+    if source.is_file():
+        return source
+    try:
+        from ament_index_python.packages import get_package_share_directory
+
+        return Path(get_package_share_directory("gscan_ros")) / name
+    except (ImportError, LookupError):
+        return source
+
+
+FAST_DISCOVERY_XML = _fast_discovery_profile()
+VENV_BIN = Path(sys.executable).parent
+STARTUP_TIMEOUT = 90.0  # node processes import torch on 2 busy cores
+TIMEOUT = 30.0
+
+# This process joins the same DDS graph as the node processes it starts: same profile,
+# loopback only, logs under a temp dir. Fast DDS reads the profile at first use.
+os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(FAST_DISCOVERY_XML))
+os.environ.setdefault("ROS_LOG_DIR", tempfile.mkdtemp(prefix="gscan_ros_test_log_"))
+
+_domains = itertools.count()
+
+
+def fresh_domain_id() -> int:
+    """The ROS domain for one test run: ROS_DOMAIN_ID when the environment sets it (a machine
+    that assigns each session its domain: the tests then take turns in it), else one within
+    1..100 (valid Fast DDS ports), varied by pid."""
+    assigned = os.environ.get("ROS_DOMAIN_ID", "")
+    if assigned.isdigit():
+        return int(assigned)
+    return 1 + (os.getpid() * 7 + next(_domains)) % 100
+
+
+def ros_env(domain_id: int, log_dir: Path) -> dict[str, str]:
+    """Environment for node processes: loopback discovery, own domain, unbuffered output."""
+    env = dict(os.environ)
+    env.update(
+        ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+        ROS_DOMAIN_ID=str(domain_id),
+        ROS_LOG_DIR=str(log_dir),
+        FASTRTPS_DEFAULT_PROFILES_FILE=str(FAST_DISCOVERY_XML),
+        PYTHONUNBUFFERED="1",
+        OMP_NUM_THREADS="1",
+    )
+    return env
+
+
+def ros_args(params: dict[str, object], remaps: dict[str, str] | None = None) -> list[str]:
+    """`--ros-args -p name:=value ... -r from:=to ...` for a node command line."""
+    args = ["--ros-args"]
+    for name, value in params.items():
+        text = str(value).lower() if isinstance(value, bool) else str(value)
+        args += ["-p", f"{name}:={text}"]
+    for source, target in (remaps or {}).items():
+        args += ["-r", f"{source}:={target}"]
+    return args
+
+
+class NodeProcess:
+    """One node executable (the installed console script) in its own session.
+
+    `executable` is a node name (console script, else `python -m gscan_ros.nodes.<name>`)
+    or a full argv list (e.g. `gscan-ros bringup ...`).
+    """
+
+    def __init__(self, executable: str | list[str], env: dict[str, str], log_dir: Path, params=None, remaps=None,
+                 name=None):
+        if isinstance(executable, str):
+            script = VENV_BIN / executable
+            command = [str(script)] if script.exists() else [sys.executable, "-m", f"gscan_ros.nodes.{executable}"]
+            command += ros_args(params or {}, remaps)
+        else:
+            command = list(executable)
+        self.name = name or Path(command[0]).name
+        self.log_path = log_dir / f"{self.name}.out"
+        self._log = open(self.log_path, "wb")
+        self.process = subprocess.Popen(
+            command, env=env, stdout=self._log, stderr=subprocess.STDOUT, start_new_session=True
+        )
+
+    def alive(self) -> bool:
+        return self.process.poll() is None
+
+    def output(self) -> str:
+        return self.log_path.read_text(errors="replace")
+
+    def stop(self, sig: int = signal.SIGINT, timeout: float = 15.0) -> int:
+        """Signal the process group; SIGKILL (and clean Fast DDS shared memory) after `timeout`."""
+        if self.alive():
+            os.killpg(self.process.pid, sig)
+            try:
+                self.process.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.kill()
+        self._log.close()
+        return self.process.returncode
+
+    def kill(self) -> None:
+        if self.alive():
+            os.killpg(self.process.pid, signal.SIGKILL)
+            self.process.wait()
+        clean_shared_memory()
+
+
+def clean_shared_memory() -> None:
+    """Remove Fast DDS shared-memory segments left by SIGKILLed participants."""
+    fastdds = VENV_BIN / "fastdds"
+    if fastdds.exists():
+        subprocess.run([str(fastdds), "shm", "clean"], capture_output=True, timeout=30, check=False)
+
+
+class Probe:
+    """A node in the test process: records topics, publishes, and waits on graph state."""
+
+    def __init__(self, domain_id: int, name: str = "test_probe"):
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context, domain_id=domain_id)
+        self.node = Node(name, context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.received: dict[str, list] = defaultdict(list)
+
+    def record(self, topic: str, msg_type, qos) -> list:
+        """Subscribe and keep every message of `topic` in `self.received[topic]`."""
+        self.node.create_subscription(msg_type, topic, self.received[topic].append, qos)
+        return self.received[topic]
+
+    def spin_until(self, predicate: Callable[[], bool], timeout: float = TIMEOUT, what: str = "condition") -> None:
+        deadline = time.monotonic() + timeout
+        while not predicate():
+            if time.monotonic() > deadline:
+                raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
+            self.executor.spin_once(timeout_sec=0.02)
+
+    def wait_for_endpoints(self, expected: dict[str, set[str]], timeout: float = STARTUP_TIMEOUT,
+                           kind: str = "subscriptions") -> None:
+        """Wait until each topic has an endpoint of `kind` from each named node."""
+        info = self.node.get_subscriptions_info_by_topic if kind == "subscriptions" else (
+            self.node.get_publishers_info_by_topic)
+
+        def ready() -> bool:
+            return all(nodes <= {i.node_name for i in info(topic)} for topic, nodes in expected.items())
+
+        self.spin_until(ready, timeout, f"{kind} {expected}")
+
+    def spin_in_background(self) -> None:
+        """Spin the probe's executor (and every node added to it) in a thread until `close()`:
+        a stack in this process, for a GscanCommander that spins itself in the test's thread."""
+        import threading
+
+        self._thread = threading.Thread(target=self._spin, name="probe-spin", daemon=True)
+        self._thread.start()
+
+    def _spin(self) -> None:
+        from rclpy.executors import ExternalShutdownException
+
+        try:
+            self.executor.spin()
+        except ExternalShutdownException:
+            pass
+
+    def publish_when_matched(self, publisher, msg, subscribers: int = 1, timeout: float = TIMEOUT) -> None:
+        self.spin_until(lambda: publisher.get_subscription_count() >= subscribers, timeout,
+                        f"{subscribers} subscriber(s) on {publisher.topic_name}")
+        publisher.publish(msg)
+
+    def close(self) -> None:
+        """Destroy every node spun here (the tests' nodes too) and the context: no participant
+        lingers to serve its latched samples to the next test in the same domain."""
+        nodes = [*self.executor.get_nodes(), self.node]
+        self.executor.shutdown()
+        if getattr(self, "_thread", None) is not None:
+            self._thread.join(timeout=10)
+        for node in dict.fromkeys(nodes):
+            node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+
 
 def tiny_checkpoint(path: Path, seed: int = 0, weight_scale: float = 1.0) -> Path:
     """A randomly initialised, very small compositional policy for the semantic parser.
@@ -40,3 +249,67 @@ def parameters(**values) -> list:
 def source_info(t_ns: int | None = None) -> dict:
     """The MessageInfo a subscription callback gets, for calling node callbacks directly."""
     return {"source_timestamp": time.time_ns() if t_ns is None else t_ns}
+
+
+class ScriptedPolicy:
+    """A stand-in for Policy in policy_node: plays `script` (its last action repeats);
+    records resets and the observations it saw."""
+
+    parser_name = "semantic"
+    grid_size = 6
+    observation_shape = (6, 6, 16)
+
+    def __init__(self, script, on_step=None):
+        self.script, self.resets, self.seen, self._t = list(script), [], [], 0
+        self.on_step = on_step  # called with the step number before each step (e.g. to reset the world)
+
+    def reset(self, graph):
+        from gscan_ros.errors import GraphError
+
+        if graph.parser != self.parser_name:
+            raise GraphError(f"graph comes from the {graph.parser!r} parser")
+        self.resets.append(graph.command)
+        self._t = 0
+
+    def step(self, observation):
+        import numpy as np
+
+        from gscan_ros.model.policy import StepOutput
+
+        if self.on_step is not None:
+            self.on_step(self._t)
+        self.seen.append(np.array(observation))
+        action = self.script[min(self._t, len(self.script) - 1)]
+        self._t += 1
+        eye = np.eye(6, dtype=np.float32)
+        return StepOutput(action, {"red": eye, "while spinning": eye[::-1].copy()})
+
+
+def in_process_stack(probe: Probe, checkpoint: Path, script, *, max_steps: int = 120, bag_dir: Path | None = None,
+                     on_step=None, seed: int = 3):
+    """A stack in the probe's context, spun in the background: world_simulator_node (`seed`,
+    no images), parser_node (`checkpoint`), policy_node playing `script` (ScriptedPolicy)
+    and, with `bag_dir`, episode_recorder_node. Returns the nodes by name (and `policy`)."""
+    from types import SimpleNamespace
+
+    from gscan_ros.nodes.episode_recorder_node import EpisodeRecorderNode
+    from gscan_ros.nodes.parser_node import ParserNode
+    from gscan_ros.nodes.policy_node import PolicyNode
+    from gscan_ros.nodes.world_simulator_node import WorldSimulatorNode
+
+    context = probe.context
+    policy = ScriptedPolicy(script, on_step)
+    stack = SimpleNamespace(
+        policy=policy,
+        world=WorldSimulatorNode(context=context, parameter_overrides=parameters(seed=seed, publish_images=False)),
+        parser=ParserNode(context=context, parameter_overrides=parameters(checkpoint=str(checkpoint))),
+        policy_node=PolicyNode(policy, context=context, parameter_overrides=parameters(max_steps=max_steps)),
+        recorder=None,
+    )
+    if bag_dir is not None:
+        stack.recorder = EpisodeRecorderNode(context=context, parameter_overrides=parameters(bag_dir=str(bag_dir)))
+    for node in (stack.world, stack.parser, stack.policy_node, stack.recorder):
+        if node is not None:
+            probe.executor.add_node(node)
+    probe.spin_in_background()
+    return stack

@@ -8,10 +8,11 @@ import sys
 import numpy as np
 import pytest
 
-from bag_support import data_end, make_episodes, mcap_file, truncated_copy
 from gscan_ros.data import bag_cache
 from gscan_ros.data.bag import BagWriter, repair_bag, write_bag
 from gscan_ros.data.bag_cache import cache_path, load_episode_cache
+
+from bag_support import data_end, make_episodes, mcap_file, truncated_copy
 
 
 @pytest.fixture

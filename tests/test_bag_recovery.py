@@ -9,9 +9,11 @@ from mcap.reader import make_reader
 from mcap.records import Message
 from mcap.stream_reader import StreamReader, breakup_chunk
 
-from bag_support import damaged_copy, data_end, kill_writer, make_episodes, mcap_file, truncated_copy
 from gscan_ros.data.bag import EPISODE_PERIOD_NS, BagWriter, iter_bag_episodes, read_bag_info, write_bag
 from gscan_ros.errors import DatasetFormatError
+
+from bag_support import damaged_copy, data_end, kill_writer, make_episodes, mcap_file, truncated_copy
+
 
 @pytest.fixture(scope="module")
 def episodes():

@@ -10,10 +10,11 @@ from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 from std_msgs.msg import String
 
-from bag_support import copy_bag, damaged_copy, data_end, kill_writer, make_episodes, mcap_file, truncated_copy
 from gscan_ros.cli import main
 from gscan_ros.data.bag import BagWriter, iter_bag_episodes, read_bag_info, repair_bag
 from gscan_ros.errors import DatasetFormatError
+
+from bag_support import copy_bag, damaged_copy, data_end, kill_writer, make_episodes, mcap_file, truncated_copy
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 

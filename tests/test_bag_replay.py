@@ -1,13 +1,14 @@
 """`gscan-ros replay`: reads the bag, evaluates closed loop, prints exact match overall and per split."""
 import pytest
 
-from bag_support import make_episodes
 from gscan_ros.cli import main
 from gscan_ros.data.bag import write_bag
 from gscan_ros.model import policy as policy_module
 from gscan_ros.training import evaluate as evaluate_module
 from gscan_ros.training.evaluate import EvalResult, Prediction
 from gscan_ros.world.types import Action
+
+from bag_support import make_episodes
 
 
 class FakePolicy:

@@ -6,9 +6,10 @@ import pytest
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from bag_support import make_episodes
 from gscan_ros.data.bag import write_bag
 from gscan_ros.data.bag_schema import TOPICS, message_definition
+
+from bag_support import make_episodes
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 
@@ -68,6 +69,6 @@ def test_schema_text_matches_the_rosbags_type_definitions(topic):
     """Our ros2msg text (read from the installed .msg files) parses to the same types as rosbags'."""
     msg_type = TOPICS[topic].msg_type
     parsed = get_types_from_msg(message_definition(msg_type), msg_type)
-    for name, (consts, fields) in parsed.items():
+    for name, (_consts, fields) in parsed.items():
         reference = TYPESTORE.fielddefs[name]
         assert [f[0] for f in fields] == [f[0] for f in reference[1]], name

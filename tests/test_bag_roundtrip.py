@@ -7,10 +7,11 @@ import pytest
 from mcap.reader import make_reader
 from std_msgs.msg import String
 
-from bag_support import make_episodes
 from gscan_ros.data.bag import BagWriter, iter_bag_episodes, read_bag_info, write_bag
 from gscan_ros.errors import DatasetFormatError
 from gscan_ros.world.world import World
+
+from bag_support import make_episodes
 
 MS = 1_000_000
 
@@ -75,6 +76,24 @@ def test_mcap_profile_encodings_and_zstd_chunks(bag):
     assert latched == {"/command": False, "/observation": True, "/action": False}
 
 
+def test_offered_qos_is_what_the_live_stack_offers(bag):
+    """metadata.yaml and the channels record the interface table's QoS (gscan_ros.interface)."""
+    import yaml
+
+    from gscan_ros import interface
+
+    info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    with open(bag / "train_0.mcap", "rb") as f:
+        channels = {c.topic: c.metadata for c in make_reader(f).get_summary().channels.values()}
+    for entry in info["topics_with_message_count"]:
+        name, [qos] = entry["topic_metadata"]["name"], entry["topic_metadata"]["offered_qos_profiles"]
+        offered = interface.endpoint_of(name).qos
+        assert (qos["depth"], qos["reliability"], qos["durability"]) == (
+            offered.depth, offered.reliability, offered.durability), name
+        assert yaml.safe_load(channels[name]["offered_qos_profiles"]) == [qos]
+    assert interface.COMMAND.qos.depth == 1000 and interface.OBSERVATION.qos.depth == 64
+
+
 def test_deterministic_times_and_step_order(bag, episodes):
     with open(bag / "train_0.mcap", "rb") as f:
         stream = [(c.topic, m.log_time, d) for _, c, m, d in _decoded(f)]
@@ -132,20 +151,21 @@ def test_writer_refuses_to_clobber_unless_told(tmp_path, episodes):
 
 def test_live_recording_with_real_times(tmp_path, episodes):
     """A recorder writes message by message; a plain-text command (no header) is not an episode."""
-    from msg_adapters import action_to_msg, observation_to_msg
-
     from gscan_ros.data.bag import episode_header
+    from msg_adapters import action_to_msg, observation_to_msg
 
     episode = episodes[4]
     t = 1_700_000_000 * 10**9
     with BagWriter(tmp_path / "live") as writer:
         writer.write_message("/command", String(data="walk to a red circle"), t)
-        writer.write_message("/action", action_to_msg(episode.actions[0]) if episode.actions else String(data="stay"), t + 1)
+        first = action_to_msg(episode.actions[0]) if episode.actions else String(data="stay")
+        writer.write_message("/action", first, t + 1)
         header = json.dumps(episode_header(episode, 0))
         writer.write_message("/command", String(data=header), t + 10)
         for k, (state, action) in enumerate(zip(episode.states(), (*episode.actions, None))):
             writer.write_message("/observation", observation_to_msg(state), t + 11 + 2 * k)
-            writer.write_message("/action", action_to_msg(action) if action is not None else String(data="<eos>"), t + 12 + 2 * k)
+            msg = action_to_msg(action) if action is not None else String(data="<eos>")
+            writer.write_message("/action", msg, t + 12 + 2 * k)
             writer.write_message("/status", String(data="stepping"), t + 12 + 2 * k)
         writer.flush()
     reader = iter_bag_episodes(tmp_path / "live")
@@ -156,15 +176,15 @@ def test_live_recording_with_real_times(tmp_path, episodes):
 
 
 def test_observation_count_mismatch_is_a_format_error(tmp_path, episodes):
-    from msg_adapters import action_to_msg
-
     from gscan_ros.data.bag import episode_header
+    from msg_adapters import action_to_msg
 
     episode = episodes[0]
     with BagWriter(tmp_path / "bad") as writer:
         writer.write_message("/command", String(data=json.dumps(episode_header(episode, 0))), 0)
         for k, action in enumerate((*episode.actions, None)):
-            writer.write_message("/action", action_to_msg(action) if action is not None else String(data="<eos>"), k + 1)
+            msg = action_to_msg(action) if action is not None else String(data="<eos>")
+            writer.write_message("/action", msg, k + 1)
     with pytest.raises(DatasetFormatError, match="bad_0.mcap: episode 0: 0 observations"):
         list(iter_bag_episodes(tmp_path / "bad"))
 

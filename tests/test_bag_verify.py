@@ -2,11 +2,12 @@
 with one line per bag unless `--allow-partial`; an intact bag passes."""
 import pytest
 
-from bag_support import damaged_copy, data_end, make_episodes, truncated_copy
 from gscan_ros.cli import main
 from gscan_ros.data.bag import BagWriter, repair_bag
 from gscan_ros.data.generate import GenerationConfig, generate_dataset
 from gscan_ros.data.io import iter_episodes
+
+from bag_support import damaged_copy, data_end, make_episodes, truncated_copy
 
 
 @pytest.fixture(scope="module")

@@ -247,7 +247,8 @@ def test_evaluate_refuses_nan_weights_naming_the_tensor(checkpoint_dir, workdir,
 
 def test_policy_node_refuses_a_bad_checkpoint_at_start(checkpoint_dir, capsys, monkeypatch):
     from gscan_ros.nodes import policy_node
-    from gscan_ros.nodes.harness import fresh_domain_id
+
+    from ros_helpers import fresh_domain_id
 
     monkeypatch.setenv("ROS_DOMAIN_ID", str(fresh_domain_id()))
     path = _broken(checkpoint_dir, "empty_vocabulary", BROKEN["empty_vocabulary"][0])

@@ -199,3 +199,17 @@ def test_an_eos_that_arrives_before_the_last_replies_closes_once_they_arrive():
         getattr(log, kind).add(t, value)
     record = log.close(log.actions.latest_before(eos_event[1], inclusive=True))
     assert record.outcome == COMPLETE and [s.observation.value for s in record.steps] == ["o0", "o1", "o2"]
+
+
+def test_the_next_episode_starts_from_the_state_the_last_one_ended_in():
+    """A command right after an <eos>: no new state is published, the last one starts it."""
+    log = EpisodeLog(100)
+    events, end = lockstep_events(actions=(WALK, EOS))
+    [first] = feed(log, events)
+    second_graph = end + 20
+    [second] = feed(log, [("graphs", second_graph, "g2"), ("actions", second_graph + 10, TURN, 3),
+                          ("situations", second_graph + 11, "s2"), ("observations", second_graph + 12, "o2"),
+                          ("actions", second_graph + 20, EOS, 4)])
+    assert [s.observation.value for s in second.steps] == ["o1", "o2"]
+    assert second.situation.value == "s1"  # published with o1, before the first episode ended
+    assert second.actions == (TURN,) and first.actions == (WALK,)

@@ -102,6 +102,7 @@ def test_no_test_example_equivalent_to_train(compositional):
     assert not any(key(e) in train for split, _, e in examples if split == "test")
 
 
+@pytest.mark.slow
 def test_same_seed_same_bytes_any_worker_count(compositional, tmp_path):
     report, _ = compositional
     again = generate_dataset(tmp_path, GenerationConfig(seed=7, max_examples=N, k_shot=3), workers=2)
@@ -110,6 +111,7 @@ def test_same_seed_same_bytes_any_worker_count(compositional, tmp_path):
     assert other.path.read_bytes() != report.path.read_bytes()
 
 
+@pytest.mark.slow
 def test_length_split(tmp_path):
     report = generate_dataset(tmp_path, GenerationConfig(seed=1, split_kind="length", max_examples=1500))
     header = read_header(report.path)

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from gscan_ros.data.commands import parse_command
-from gscan_ros.data.generate import GenerationConfig, _DROPPED, _labels
+from gscan_ros.data.generate import _DROPPED, GenerationConfig, _labels
 from gscan_ros.data.sampling import ObjectSpec, Placement
 from gscan_ros.data.splits import (
     SPLIT_NAMES,

@@ -1,12 +1,10 @@
 """`gscan-ros bringup` (all nodes in one process) answers a command from another process."""
 import signal
 
-from std_msgs.msg import String
+from gscan_ros.nodes.commander import GscanCommander
+from gscan_ros.world.types import Action
 
-from gscan_ros.nodes.common import EVENT_QOS
-from gscan_ros.nodes.harness import VENV_BIN, NodeProcess, Probe, fresh_domain_id, ros_env
-
-from ros_helpers import tiny_checkpoint
+from ros_helpers import STARTUP_TIMEOUT, VENV_BIN, NodeProcess, Probe, fresh_domain_id, ros_env, tiny_checkpoint
 
 
 def test_bringup_follows_a_command_and_stops_on_sigint(tmp_path):
@@ -17,17 +15,15 @@ def test_bringup_follows_a_command_and_stops_on_sigint(tmp_path):
         env, tmp_path,
     )
     probe = Probe(int(env["ROS_DOMAIN_ID"]))
+    commander = GscanCommander(context=probe.context)
     try:
-        actions = probe.record("action", String, EVENT_QOS)
-        status = probe.record("status", String, EVENT_QOS)
-        commands = probe.node.create_publisher(String, "command", EVENT_QOS)
-        probe.wait_for_endpoints({"/command_graph": {"policy_node"}, "/action": {"world_simulator_node"}})
-        probe.publish_when_matched(commands, String(data="pull a yellow cylinder hesitantly"))
-        probe.spin_until(lambda: actions and actions[-1].data == "<eos>", what="<eos>")
-        assert len(actions) <= 4  # max_steps 3, then <eos>
-        probe.spin_until(lambda: any(s.data.startswith("world_simulator_node: episode ended") for s in status),
-                         what="the world's episode end")
+        commander.wait_until_ready(STARTUP_TIMEOUT)
+        result = commander.run_episode("pull a yellow cylinder hesitantly", timeout=60)
+        assert result.finished and result.actions[-1] is Action.EOS
+        assert result.steps <= 3  # max_steps 3, then <eos>
+        commander.wait_for_status("world_simulator_node: episode ended", 30)
     finally:
+        commander.shutdown()
         probe.close()
         code = bringup.stop(signal.SIGINT)
     assert code == 0, bringup.output()[-2000:]

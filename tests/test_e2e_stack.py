@@ -2,7 +2,8 @@
 
 One stack per module (starting five Python processes costs seconds): world simulator,
 parser, policy (a tiny random checkpoint: the protocol is under test, not the model)
-and two recorders, one stopped with SIGINT and one SIGKILLed.
+and two recorders, one stopped with SIGINT and one SIGKILLed. Commands go through a
+GscanCommander, the way a script drives the stack; a probe records the topics.
 """
 import signal
 import time
@@ -12,15 +13,15 @@ import pytest
 from std_msgs.msg import String
 
 from gscan_ros.data.bag import BagEpisodeReader, read_bag_info
+from gscan_ros.data.sources import sample_episode
+from gscan_ros.nodes.commander import GscanCommander, Outcome
 from gscan_ros.nodes.common import EVENT_QOS, LATCHED_LOG_QOS
 from gscan_ros.nodes.episode_recorder_node import READY_LOG
-from gscan_ros.data.sources import sample_episode
-from gscan_ros.nodes.harness import STARTUP_TIMEOUT, NodeProcess, Probe, fresh_domain_id, ros_env
 from gscan_ros.world import World
 from gscan_ros.world.types import Action
 from msg_adapters import msg_to_graph
 
-from ros_helpers import tiny_checkpoint
+from ros_helpers import STARTUP_TIMEOUT, NodeProcess, Probe, fresh_domain_id, ros_env, tiny_checkpoint
 
 SEED = 0
 MAX_STEPS = 10
@@ -44,6 +45,7 @@ class Stack:
         self.graphs = self.probe.record("command_graph", String, LATCHED_LOG_QOS)
         self.commands = self.probe.node.create_publisher(String, "command", EVENT_QOS)
         self.action_pub = self.probe.node.create_publisher(String, "action", EVENT_QOS)
+        self.commander = GscanCommander(context=self.probe.context)
 
     def _start(self, executable, name=None, **params):
         remaps = {"__node": name} if name else None
@@ -57,8 +59,9 @@ class Stack:
                 "/observation": {"policy_node", *RECORDERS},
                 "/action": {"world_simulator_node", *RECORDERS},
             })
+            self.commander.wait_until_ready(STARTUP_TIMEOUT)
             for name in RECORDERS:
-                self.probe.spin_until(lambda: READY_LOG in self.processes[name].output(), STARTUP_TIMEOUT,
+                self.probe.spin_until(lambda name=name: READY_LOG in self.processes[name].output(), STARTUP_TIMEOUT,
                                       what=f"{name} to receive the world state")
         except AssertionError as exc:
             logs = "\n".join(f"--- {n}\n{p.output()[-1500:]}" for n, p in self.processes.items())
@@ -68,14 +71,14 @@ class Stack:
         return [m.data for m in self.status if m.data.startswith(prefix)]
 
     def run_command(self, command):
-        """Publish `command`; the actions up to and including <eos>."""
-        start = len(self.actions)
-        self.probe.publish_when_matched(self.commands, String(data=command))
-        self.probe.spin_until(lambda: any(a.data == "<eos>" for a in self.actions[start:]), what="<eos>")
-        return [Action.from_token(a.data) for a in self.actions[start:]]
+        """Run `command` to its end; the actions up to and including <eos>."""
+        result = self.commander.run_episode(command, timeout=30)
+        assert result.finished, (result.outcome, result.status[-5:])
+        return result.actions
 
     def close(self):
         codes = {name: p.stop() for name, p in self.processes.items()}
+        self.commander.shutdown()
         self.probe.close()
         return codes
 
@@ -99,7 +102,8 @@ def episode(stack):
     actions = stack.run_command(command)
     for name in RECORDERS:
         try:
-            stack.probe.spin_until(lambda: stack.lines(f"{name}: recorded episode 0"), what=f"{name} to record")
+            stack.probe.spin_until(lambda name=name: stack.lines(f"{name}: recorded episode 0"),
+                                   what=f"{name} to record")
         except AssertionError as exc:
             logs = "\n".join(f"--- {n}\n{p.output()[-2000:]}" for n, p in stack.processes.items())
             raise AssertionError(f"{exc}\n{logs}") from None
@@ -113,6 +117,12 @@ def test_episode_runs_in_lock_step_until_eos(stack, episode):
     assert stack.graphs and msg_to_graph(stack.graphs[-1]).command == command
     stack.probe.spin_until(lambda: stack.lines(f"world_simulator_node: episode ended after {len(actions) - 1} actions"),
                            what="the world's episode end")
+
+
+def test_the_commander_reports_a_refused_command_with_its_reason(stack, episode):
+    result = stack.commander.run_episode("walk to a purple circle", timeout=30)
+    assert result.outcome is Outcome.REJECTED and result.actions == []
+    assert result.reason.startswith("parser_node: rejected command 'walk to a purple circle'")
 
 
 def check_recorded(bag_dir, command, actions):

@@ -54,6 +54,7 @@ def trained(tmp_path_factory):
     return root, plan
 
 
+@pytest.mark.slow
 def test_runner_generates_trains_and_evaluates_every_run(trained):
     root, _ = trained
     (data,) = (root / "data").iterdir()
@@ -71,6 +72,7 @@ def test_runner_generates_trains_and_evaluates_every_run(trained):
     assert state["model"]["message"] == "state"
 
 
+@pytest.mark.slow
 def test_rerun_skips_finished_runs_and_resumes_a_killed_one(trained, capsys):
     root, plan = trained
     killed, finished = root / "results/semantic_s0", root / "results/state_s0"
@@ -90,6 +92,7 @@ def test_rerun_skips_finished_runs_and_resumes_a_killed_one(trained, capsys):
     assert "2 done, 0 failed, 0 left to others or stale" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_changed_recipe_marks_runs_stale_and_leaves_them(trained, tmp_path, capsys):
     root, _ = trained
     plan = write_plan(tmp_path / "plan.yaml", root, defaults={**TINY, "lr": 0.003})

@@ -23,6 +23,7 @@ def length_data(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_length_split_defaults_to_the_released_12x12_world(length_data):
     header = read_header(length_data / "dataset.txt")
     assert header.grid_size == 12
@@ -34,6 +35,7 @@ def test_length_split_defaults_to_the_released_12x12_world(length_data):
     assert max(max(lengths[s]) for s in ("train", "dev", "test")) <= 15
 
 
+@pytest.mark.slow
 def test_a_12x12_model_trains_evaluates_per_length_and_refuses_6x6_data(length_data, tmp_path, capsys):
     run = tmp_path / "run"
     assert main(["train", "--config", "configs/length.yaml", "--data", str(length_data), "--out", str(run),
@@ -56,6 +58,7 @@ def test_a_12x12_model_trains_evaluates_per_length_and_refuses_6x6_data(length_d
     assert "12x12" in line and "6x6" in line
 
 
+@pytest.mark.slow
 def test_training_refuses_a_config_that_names_another_grid(length_data, tmp_path, capsys):
     assert main(["train", "--config", "configs/length.yaml", "--data", str(length_data), "--out",
                  str(tmp_path / "r"), "--quiet", "--set", "max_updates=1", "--set", "model.grid_size=6"]) == 1

@@ -5,10 +5,9 @@ from pathlib import Path
 import pytest
 
 from gscan_ros.errors import CommandError, LexiconError
-from gscan_ros.language import VOCABULARY, canonicalize, get_parser, synonym_table
+from gscan_ros.language import VOCABULARY, canonicalize, get_parser, synonym_table, synonyms
 from gscan_ros.language.canonical import DETERMINERS
 from gscan_ros.language.grammar import CLAUSE_ADVERBS
-from gscan_ros.language import synonyms
 from gscan_ros.language.lexicon import wordnet_reader, wordnet_root
 from gscan_ros.language.synonyms import EXCLUDED_SENSES, EXCLUDED_WORDS, GSCAN_SENSES
 from gscan_ros.language.tokens import CONTENT_WORDS

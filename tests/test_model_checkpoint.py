@@ -8,14 +8,15 @@ from gscan_ros.language.lexicon import Concept, Lexicon
 from gscan_ros.model.checkpoint import checkpoint_dict, read_checkpoint, restore_model, save_checkpoint
 from gscan_ros.model.compositional import CompositionalNetwork, ModelConfig
 from gscan_ros.model.policy import Policy
-from tests.model_support import GRAPHS, chain, random_states, table
+
+from model_support import GRAPHS, chain, random_states, table
 
 LEXICON = Lexicon((Concept(("big", "small"), ((0, 1),)),))
 
 
-def saved(tmp_path, cfg=ModelConfig(), graphs=GRAPHS):
+def saved(tmp_path, cfg=None, graphs=GRAPHS):
     torch.manual_seed(0)
-    net = CompositionalNetwork(cfg, table(graphs))
+    net = CompositionalNetwork(cfg or ModelConfig(), table(graphs))
     path = tmp_path / "m.pt"
     save_checkpoint(path, checkpoint_dict(net, parser="semantic", lexicon=LEXICON, step=7, metrics={"em": 1.5}))
     return net, path

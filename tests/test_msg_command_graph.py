@@ -2,7 +2,7 @@ import pytest
 from std_msgs.msg import String
 
 from gscan_ros.errors import GraphError
-from gscan_ros.language import Lexicon, get_parser
+from gscan_ros.language import BUILTIN_PARSERS, Lexicon, get_parser
 from msg_adapters.command_graph import graph_to_msg, msg_to_graph
 from msg_adapters.errors import MessageFormatError
 
@@ -10,7 +10,7 @@ BIG_SMALL = Lexicon.from_dict({"format": 1, "parts_of_speech": ["a", "s"],
                                "concepts": [{"words": ["big", "small"], "antonyms": [[0, 1]]}]})
 
 
-@pytest.mark.parametrize("parser", ["semantic", "constituency", "dependency"])
+@pytest.mark.parametrize("parser", BUILTIN_PARSERS)
 @pytest.mark.parametrize("command", ["pull a red circle hesitantly", "walk to a yellow small square while spinning"])
 def test_round_trip(parser, command):
     graph = get_parser(parser, BIG_SMALL).parse(command)

@@ -6,9 +6,8 @@ from PIL import Image
 from gscan_ros.cli import main
 from gscan_ros.data.bag import iter_bag_episodes
 from gscan_ros.data.sources import sample_episode
-from gscan_ros.nodes.harness import fresh_domain_id
 
-from ros_helpers import tiny_checkpoint
+from ros_helpers import fresh_domain_id, tiny_checkpoint
 
 
 def test_demo_prints_the_episodes_and_writes_bag_and_gifs(tmp_path, monkeypatch, capsys):
@@ -38,7 +37,8 @@ def test_demo_prints_the_episodes_and_writes_bag_and_gifs(tmp_path, monkeypatch,
 def test_demo_with_an_unparsable_command_fails_with_one_line(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("ROS_DOMAIN_ID", str(fresh_domain_id()))
     checkpoint = tiny_checkpoint(tmp_path / "tiny.pt")
-    code = main(["demo", "--checkpoint", str(checkpoint), "--command", "fly to the moon", "--out", str(tmp_path / "demo")])
+    code = main(["demo", "--checkpoint", str(checkpoint), "--command", "fly to the moon",
+                 "--out", str(tmp_path / "demo")])
     assert code == 1
     (line,) = capsys.readouterr().err.strip().splitlines()
     assert line.startswith("gscan-ros demo: error: unknown word 'fly'")

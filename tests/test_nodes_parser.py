@@ -5,11 +5,10 @@ from std_msgs.msg import String
 from gscan_ros.errors import CheckpointError, CommandError
 from gscan_ros.language import get_parser
 from gscan_ros.nodes.common import EVENT_QOS, LATCHED_LOG_QOS
-from gscan_ros.nodes.harness import Probe, fresh_domain_id
 from gscan_ros.nodes.parser_node import ParserNode
 from msg_adapters import msg_to_cdr, msg_to_graph
 
-from ros_helpers import parameters, tiny_checkpoint
+from ros_helpers import Probe, fresh_domain_id, parameters, tiny_checkpoint
 
 
 def cdr(text: str | bytes) -> bytes:

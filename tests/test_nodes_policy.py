@@ -3,45 +3,20 @@ import time
 
 import numpy as np
 import pytest
+from rclpy.qos import ReliabilityPolicy
 from sensor_msgs.msg import Image
 from std_msgs.msg import String
 
-from gscan_ros.errors import GraphError
 from gscan_ros.language import get_parser
 from gscan_ros.model.policy import StepOutput
-from gscan_ros.nodes.common import EVENT_QOS
-from gscan_ros.nodes.harness import Probe, fresh_domain_id
+from gscan_ros.nodes.common import EVENT_QOS, VIEWER_LOG_QOS
 from gscan_ros.nodes.policy_node import PolicyNode
 from gscan_ros.world.types import Action
 from msg_adapters import graph_to_msg, msg_to_attention, observation_to_msg, reset_to_msg
 
-from ros_helpers import parameters, source_info
+from ros_helpers import Probe, ScriptedPolicy, fresh_domain_id, parameters, source_info
 
 PARSER = get_parser("semantic")
-
-
-class ScriptedPolicy:
-    """Plays `script` (its last action repeats); records resets and the observations it saw."""
-
-    parser_name = "semantic"
-    grid_size = 6
-    observation_shape = (6, 6, 16)
-
-    def __init__(self, script):
-        self.script, self.resets, self.seen, self._t = list(script), [], [], 0
-
-    def reset(self, graph):
-        if graph.parser != self.parser_name:
-            raise GraphError(f"graph comes from the {graph.parser!r} parser")
-        self.resets.append(graph.command)
-        self._t = 0
-
-    def step(self, observation):
-        self.seen.append(np.array(observation))
-        action = self.script[min(self._t, len(self.script) - 1)]
-        self._t += 1
-        eye = np.eye(6, dtype=np.float32)
-        return StepOutput(action, {"red": eye, "while spinning": eye[::-1].copy()})
 
 
 @pytest.fixture
@@ -122,6 +97,16 @@ def test_model_eos_ends_the_episode(probe):
     assert len(policy.seen) == 2
 
 
+def test_a_command_after_eos_starts_at_once_from_the_newest_state(probe):
+    """The world does not reply to <eos>, so the next command acts on the state it left."""
+    node, policy = start(probe, [Action.EOS])
+    node.on_observation(observation(0), source_info())
+    node.on_graph(graph(), source_info())  # -> <eos>
+    node.on_graph(graph("push a big square"), source_info())
+    assert policy.resets == ["walk to a red circle while spinning", "push a big square"]
+    assert len(policy.seen) == 2
+
+
 def test_a_new_graph_preempts_and_waits_for_the_reply_to_the_last_action(probe):
     status = probe.record("status", String, EVENT_QOS)
     node, policy = start(probe, [Action.WALK])
@@ -165,8 +150,8 @@ def test_a_graph_of_another_parser_is_rejected(probe):
 
 
 def test_attention_maps_are_published_per_word(probe):
-    red = probe.record("attention/red", Image, EVENT_QOS)
-    spinning = probe.record("attention/while_spinning", Image, EVENT_QOS)
+    red = probe.record("attention/red", Image, VIEWER_LOG_QOS)  # best effort, as offered
+    spinning = probe.record("attention/while_spinning", Image, VIEWER_LOG_QOS)
     node, _ = start(probe, [Action.WALK], attention_upsample=4)
     node.on_graph(graph(), source_info())
     node.on_observation(observation(), source_info())
@@ -178,6 +163,8 @@ def test_attention_maps_are_published_per_word(probe):
     assert (red[0].height, red[0].width, red[0].encoding) == (24, 24, "mono8")
     np.testing.assert_allclose(msg_to_attention(red[0]), np.eye(6))
     np.testing.assert_allclose(msg_to_attention(spinning[0]), np.eye(6)[::-1])
+    viewers = [pub for pub in node.publishers if pub.topic_name.startswith("/attention/")]
+    assert viewers and all(pub.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT for pub in viewers)
 
 
 def world_reset(t_ns=None):
@@ -239,7 +226,7 @@ def test_size_ordering_is_published_for_a_size_word(probe):
             small[0, 0], big[5, 5] = 1.0, 1.0
             return StepOutput(super().step(observation).action, {"small": small}, {"small": big})
 
-    ordering = probe.record("attention/size_ordering", Image, EVENT_QOS)
+    ordering = probe.record("attention/size_ordering", Image, VIEWER_LOG_QOS)
     node = PolicyNode(SizePolicy([Action.WALK]), context=probe.context, parameter_overrides=parameters())
     probe.executor.add_node(node)
     node.on_graph(graph("walk to a small circle"), source_info())

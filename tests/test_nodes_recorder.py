@@ -3,19 +3,19 @@ import json
 import time
 
 import pytest
+import yaml
 from std_msgs.msg import String
 
-from gscan_ros.data.bag import BagEpisodeReader
+from gscan_ros.data.bag import BagEpisodeReader, BagWriter, iter_bag_episodes, read_bag_info
 from gscan_ros.data.sources import sample_episode
 from gscan_ros.language import get_parser
 from gscan_ros.nodes.common import EVENT_QOS
 from gscan_ros.nodes.episode_recorder_node import EpisodeRecorderNode
-from gscan_ros.nodes.harness import Probe, fresh_domain_id
 from gscan_ros.world import World
 from gscan_ros.world.types import Action
 from msg_adapters import action_to_msg, graph_to_msg, observation_to_msg, reset_to_msg
 
-from ros_helpers import parameters
+from ros_helpers import Probe, fresh_domain_id, parameters
 
 EPISODE = sample_episode(0)
 WALK, TURN, EOS = Action.WALK, Action.TURN_LEFT, Action.EOS
@@ -134,7 +134,7 @@ def test_over_dds_a_reset_service_call_ends_the_recorded_episode_as_aborted(prob
     probe.spin_until(lambda: actions.get_subscription_count() == 2, what="the world and the recorder")
     for replies, action in enumerate((WALK, TURN), start=2):
         actions.publish(action_to_msg(action))
-        probe.spin_until(lambda: len(observations) == replies, what=f"the reply to {action.token}")
+        probe.spin_until(lambda replies=replies: len(observations) == replies, what=f"the reply to {action.token}")
     client = probe.node.create_client(Trigger, "reset_world")
     probe.spin_until(client.service_is_ready, what="reset_world")
     future = client.call_async(Trigger.Request())
@@ -146,3 +146,36 @@ def test_over_dds_a_reset_service_call_ends_the_recorded_episode_as_aborted(prob
     records, report = read(tmp_path / "bag", include_aborted=True)
     assert [r.episode.actions for r in records] == [(WALK, TURN)]
     assert report.aborted_episodes == 1 and report.lost_episodes == 0 and report.lost_messages == 0
+
+
+def _channel_metadata(bag_dir):
+    from mcap.reader import make_reader
+
+    (path,) = bag_dir.glob("*.mcap")
+    with open(path, "rb") as f:
+        return {c.topic: c.metadata for c in make_reader(f).get_summary().channels.values()}
+
+
+def _topic_metadata(bag_dir):
+    info = yaml.safe_load((bag_dir / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    return {t["topic_metadata"]["name"]: (t["topic_metadata"], t["message_count"])
+            for t in info["topics_with_message_count"]}
+
+
+def test_a_live_bag_has_the_metadata_of_the_same_episode_written_by_bag_writer(live, tmp_path):
+    """The recorder writes through BagWriter: same custom data (episodes per split), topics,
+    types, counts, offered QoS and type hashes as a generated bag of the same episode."""
+    live.command()
+    for action in (WALK, TURN, EOS):
+        live.policy_acts(action)
+    live.recorder.destroy_node()  # closes the bag
+    recorded = live.recorder.bag_dir
+    [record] = read(recorded)[0]
+    with BagWriter(tmp_path / "written") as writer:
+        writer.write_episode(record.episode, graph=record.episode.meta["command_graph"])
+    live_info, written_info = read_bag_info(recorded), read_bag_info(tmp_path / "written")
+    assert live_info.custom == written_info.custom
+    assert live_info.splits == {"live": 1} and live_info.closed
+    assert _topic_metadata(recorded) == _topic_metadata(tmp_path / "written")
+    assert _channel_metadata(recorded) == _channel_metadata(tmp_path / "written")
+    assert list(iter_bag_episodes(recorded)) == list(iter_bag_episodes(tmp_path / "written"))

@@ -11,12 +11,11 @@ from gscan_ros.data.sources import sample_episode
 from gscan_ros.language import get_parser
 from gscan_ros.language.paraphrase import paraphrase
 from gscan_ros.nodes.episode_recorder_node import EpisodeRecorderNode
-from gscan_ros.nodes.harness import Probe, fresh_domain_id
 from gscan_ros.world import World
 from gscan_ros.world.types import Action
 from msg_adapters import action_to_msg, graph_to_msg, observation_to_msg
 
-from ros_helpers import parameters
+from ros_helpers import Probe, fresh_domain_id, parameters
 
 EPISODE = sample_episode(0)
 
@@ -42,7 +41,8 @@ def record_one_step_episode(recorder, command: str) -> dict:
     state()
     recorder.on_graph(graph_to_msg(get_parser("semantic").parse(command)), {"source_timestamp": next(stamps)})
     for seq, action in enumerate((Action.WALK, Action.EOS), start=1):
-        recorder.on_action(action_to_msg(action), {"source_timestamp": next(stamps), "publication_sequence_number": seq})
+        info = {"source_timestamp": next(stamps), "publication_sequence_number": seq}
+        recorder.on_action(action_to_msg(action), info)
         if action is not Action.EOS:
             world.step(action)
             state()

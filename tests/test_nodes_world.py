@@ -7,16 +7,15 @@ from std_msgs.msg import Header, String, UInt8MultiArray
 from std_srvs.srv import Trigger
 
 from gscan_ros.data.bag import write_bag
+from gscan_ros.data.sources import sample_episode
 from gscan_ros.errors import DatasetFormatError
 from gscan_ros.nodes.common import EVENT_QOS, LATCHED_LOG_QOS
-from gscan_ros.data.sources import sample_episode
-from gscan_ros.nodes.harness import Probe, fresh_domain_id
 from gscan_ros.nodes.world_simulator_node import WorldSimulatorNode
 from gscan_ros.world import World
 from gscan_ros.world.types import Action
 from msg_adapters import msg_to_observation, msg_to_reset
 
-from ros_helpers import parameters, source_info
+from ros_helpers import Probe, fresh_domain_id, parameters, source_info
 
 
 @pytest.fixture
@@ -53,7 +52,7 @@ def test_each_action_gets_one_observation_of_the_new_state(probe, world):
     node, observations, _ = world
     for replies, token in enumerate(("turn left", "walk"), start=2):  # lock-step: one at a time
         node.on_action(String(data=token), source_info())
-        probe.spin_until(lambda: len(observations) == replies, what=f"the reply to {token!r}")
+        probe.spin_until(lambda replies=replies: len(observations) == replies, what=f"the reply to {token!r}")
     expected = encoding_after(sample_episode(3).situation, Action.TURN_LEFT, Action.WALK)
     np.testing.assert_array_equal(msg_to_observation(observations[-1]), expected)
 
@@ -84,7 +83,7 @@ def test_eos_ends_the_episode_with_a_status_line(probe, world):
     node, observations, status = world
     for replies in (2, 3):
         node.on_action(String(data="stay"), source_info())
-        probe.spin_until(lambda: len(observations) == replies, what="a reply")
+        probe.spin_until(lambda replies=replies: len(observations) == replies, what="a reply")
     node.on_action(String(data="<eos>"), source_info())
     probe.spin_until(lambda: any("episode ended after 2 actions" in s.data for s in status), what="episode end")
     node.on_action(String(data="stay"), source_info())

@@ -19,8 +19,17 @@ from pathlib import Path
 import pytest
 
 from packaging_support import (
-    NODES, PACKAGE, SITE, copy_sources, imported_from, installed_env, ros2_run, run_until_logged,
+    NODES,
+    PACKAGE,
+    SITE,
+    copy_sources,
+    imported_from,
+    installed_env,
+    ros2_run,
+    run_until_logged,
 )
+
+pytestmark = pytest.mark.packaging
 
 RUN_COLCON = "import sys; from colcon_core.command import main; sys.argv[0] = 'colcon'; sys.exit(main())"
 INSTALL_HINT = ("python3.11 -m venv /tmp/colcon_venv && /tmp/colcon_venv/bin/pip install colcon-common-extensions, "

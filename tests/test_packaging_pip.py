@@ -12,9 +12,21 @@ from __future__ import annotations
 import subprocess
 import sys
 
+import pytest
+
 from packaging_support import (
-    NODES, PACKAGE, SITE, WHEELS_VENV, copy_sources, imported_from, installed_env, ros2_run, run_until_logged,
+    NODES,
+    PACKAGE,
+    SITE,
+    WHEELS_VENV,
+    copy_sources,
+    imported_from,
+    installed_env,
+    ros2_run,
+    run_until_logged,
 )
+
+pytestmark = pytest.mark.packaging
 
 
 def pip(*args: str) -> None:

@@ -4,9 +4,8 @@ import pytest
 from gscan_ros.cli import main
 from gscan_ros.data.bag import BagWriter
 from gscan_ros.errors import DatasetFormatError
-from gscan_ros.nodes.harness import fresh_domain_id
 
-from ros_helpers import tiny_checkpoint
+from ros_helpers import fresh_domain_id, tiny_checkpoint
 
 
 def _user_folder(path):

@@ -2,6 +2,7 @@
 from pathlib import Path
 
 import pytest
+import yaml
 
 from gscan_ros.training.config import ConfigError, TrainConfig
 
@@ -32,9 +33,14 @@ CONFIGS = sorted((Path(__file__).resolve().parents[1] / "configs").glob("*.yaml"
 
 
 @pytest.mark.parametrize("path", CONFIGS, ids=[p.name for p in CONFIGS])
-def test_shipped_configs_load(path):
+def test_shipped_configs_load_every_setting_they_name(path):
+    raw = yaml.safe_load(path.read_text())
     cfg = TrainConfig.load(path, [])
-    assert cfg.model_config() is not None
+    assert {k: v for k, v in cfg.to_dict().items() if k in raw and k != "model"} == {
+        k: v for k, v in raw.items() if k != "model"}
+    model = cfg.model_config().to_dict()
+    assert {k: model[k] for k in raw.get("model") or {}} == (raw.get("model") or {})
+    assert TrainConfig.from_dict(cfg.to_dict()) == cfg
 
 
 def test_length_config_widens_the_cnn_as_the_original():

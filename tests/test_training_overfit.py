@@ -1,5 +1,5 @@
 """A tiny run overfits 50 real walk episodes to 100% closed-loop exact match (real World)."""
-import numpy as np
+import pytest
 import torch
 
 from gscan_ros.language.lexicon import Lexicon
@@ -8,9 +8,12 @@ from gscan_ros.model.compositional import CompositionalNetwork, ModelConfig
 from gscan_ros.model.policy import Policy
 from gscan_ros.training.batches import EpisodeStore, EpochCursor, iterate_batches
 from gscan_ros.training.evaluate import evaluate_episodes
-from tests.model_support import walk_episodes
+from gscan_ros.training.step import TrainStep
+
+from model_support import walk_episodes
 
 
+@pytest.mark.slow
 def test_overfits_50_walk_episodes():
     torch.set_num_threads(1)
     torch.manual_seed(0)
@@ -18,20 +21,14 @@ def test_overfits_50_walk_episodes():
     episodes = walk_episodes(50, seed=1)
     store = EpisodeStore(episodes, parser)
     net = CompositionalNetwork(ModelConfig(cnn_dropout=0.0), store.graph_table())
-    opt = torch.optim.Adam(net.parameters(), lr=3e-3)
+    update = TrainStep(net, torch.optim.Adam(net.parameters(), lr=3e-3), store)
     policy = Policy(net, "semantic")
     batches = iterate_batches(store, 50, "mixed", seed=0, cursor=EpochCursor())
     exact = 0.0
-    for update in range(1, 601):
-        _, ids = next(batches)
-        net.train()
-        loss = net.teacher_forcing(store.batch(ids, net.table, quantum=8)).loss
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-        if update % 50 == 0:
+    for step in range(1, 601):
+        loss = update(next(batches)[1])
+        if step % 50 == 0:
             exact = evaluate_episodes(policy, episodes, batch_size=50).exact_match
             if exact == 100.0:
                 break
-    assert exact == 100.0, f"closed-loop exact match {exact} after {update} updates (loss {loss.item():.4f})"
-    assert np.isfinite(loss.item())
+    assert exact == 100.0, f"closed-loop exact match {exact} after {step} updates (loss {loss:.4f})"

@@ -1,6 +1,7 @@
 """Situation <-> gSCAN `situation` JSON: exact round trips, vectors, field-named errors."""
 import copy
 import json
+from pathlib import Path
 
 import pytest
 
@@ -16,45 +17,9 @@ def _obj(shape, color, size, row, col):
     }
 
 
-# The situation of the real compositional example in GS `example_prediction.json`
-# ("push a green small square cautiously", GSCAN_SPEC §1.3 / §3.2), with the
-# released vector strings written out literally.
-REAL_SITUATION = {
-    "grid_size": 6,
-    "agent_position": {"row": "2", "column": "0"},
-    "agent_direction": 0,
-    "target_object": {"vector": "10001000100", "position": {"row": "1", "column": "1"},
-                      "object": {"shape": "square", "color": "green", "size": "1"}},
-    "distance_to_target": "2",
-    "direction_to_target": "ne",
-    "placed_objects": {
-        "0": {"vector": "10001000100", "position": {"row": "1", "column": "1"},
-              "object": {"shape": "square", "color": "green", "size": "1"}},
-        "1": {"vector": "01001000100", "position": {"row": "0", "column": "3"},
-              "object": {"shape": "square", "color": "green", "size": "2"}},
-        "2": {"vector": "00100100010", "position": {"row": "3", "column": "2"},
-              "object": {"shape": "cylinder", "color": "red", "size": "3"}},
-        "3": {"vector": "00100100010", "position": {"row": "1", "column": "4"},
-              "object": {"shape": "cylinder", "color": "red", "size": "3"}},
-        "4": {"vector": "00011000010", "position": {"row": "3", "column": "1"},
-              "object": {"shape": "square", "color": "red", "size": "4"}},
-        "5": {"vector": "00101000010", "position": {"row": "2", "column": "4"},
-              "object": {"shape": "square", "color": "red", "size": "3"}},
-        "6": {"vector": "00100011000", "position": {"row": "0", "column": "1"},
-              "object": {"shape": "circle", "color": "yellow", "size": "3"}},
-        "7": {"vector": "01000011000", "position": {"row": "2", "column": "2"},
-              "object": {"shape": "circle", "color": "yellow", "size": "2"}},
-        "8": {"vector": "01001001000", "position": {"row": "4", "column": "4"},
-              "object": {"shape": "square", "color": "yellow", "size": "2"}},
-        "9": {"vector": "10001001000", "position": {"row": "4", "column": "2"},
-              "object": {"shape": "square", "color": "yellow", "size": "1"}},
-        "10": {"vector": "01000100001", "position": {"row": "2", "column": "1"},
-               "object": {"shape": "cylinder", "color": "blue", "size": "2"}},
-        "11": {"vector": "10000100001", "position": {"row": "5", "column": "2"},
-               "object": {"shape": "cylinder", "color": "blue", "size": "1"}},
-    },
-    "carrying_object": None,
-}
+# The situation of the real compositional example in gSCAN's `example_prediction.json`
+# ("push a green small square cautiously"), released vector strings written out literally.
+REAL_SITUATION = json.loads((Path(__file__).parent / "fixtures" / "real_situation.json").read_text())
 
 # A walk example built like the generator's "color only" form (target + 5 objects), SW target.
 BUILT_SITUATION = {
@@ -156,11 +121,13 @@ def _set(d, path, value):
         (("placed_objects", "3", "object", "color"), "pink", r"placed_objects\.3\.object\.color: unknown color"),
         (("placed_objects", "3", "object", "size"), "5", r"placed_objects\.3\.object\.size: expected 1-4"),
         (("placed_objects", "3", "position", "row"), "6", r"placed_objects\.3\.position: \(6, 4\) is outside"),
-        (("placed_objects", "3", "position"), {"row": "0", "column": "3"}, r"placed_objects\.3\.position: cell \(0, 3\) already holds placed object 1"),
+        (("placed_objects", "3", "position"), {"row": "0", "column": "3"},
+         r"placed_objects\.3\.position: cell \(0, 3\) already holds placed object 1"),
         (("placed_objects", "3", "vector"), None, r"placed_objects\.3\.vector: expected a string of 11"),
         (("placed_objects", "13"), REAL_SITUATION["placed_objects"]["0"], r"placed_objects: keys must be"),
         (("placed_objects",), [], r"situation\.placed_objects: expected an object, got list"),
-        (("target_object", "position", "column"), "2", r"situation\.target_object\.vector|not among the placed objects"),
+        (("target_object", "position", "column"), "2",
+         r"situation\.target_object\.vector|not among the placed objects"),
     ],
 )
 def test_malformed_input_names_the_field(path, value, message):

@@ -67,7 +67,7 @@ def test_light_push_moves_every_primitive_until_the_wall():
     for col in (3, 4, 5):
         assert w.object_can_move(Action.PUSH)
         w.step("push")
-        assert w.object_at((2, col)) is not None and w.agent_position == P(2, col)
+        assert w.object_at((2, col)).color == "red" and w.agent_position == P(2, col)
     assert not w.object_can_move(Action.PUSH)
     before = w.copy()
     w.step("push")  # against the wall: nothing happens
@@ -78,9 +78,9 @@ def test_heavy_push_needs_two_primitives_per_cell():
     w = world(objects=[("cylinder", "green", 3, (2, 2))])
     w.step("walk"), w.step("walk")
     w.step("push")
-    assert w.object_at((2, 2)) is not None and w.agent_position == P(2, 2)
+    assert w.object_at((2, 2)).color == "green" and w.agent_position == P(2, 2)
     w.step("push")
-    assert w.object_at((2, 3)) is not None and w.object_at((2, 2)) is None
+    assert w.object_at((2, 3)).color == "green" and w.object_at((2, 2)) is None
     assert w.agent_position == P(2, 3)
 
 
@@ -104,7 +104,7 @@ def test_blocked_push_is_a_no_op_including_momentum():
     assert w == before  # momentum unchanged, too
     w.step("turn right")
     w.step("push")
-    assert w.object_at((2, 1)) is not None  # first primitive of a heavy object after the block
+    assert w.object_at((2, 1)).color == "red"  # first primitive of a heavy object after the block
     w.step("push")
     assert w.object_at((3, 1)).color == "red"
 
@@ -122,7 +122,7 @@ def test_pull_moves_the_object_backwards_with_the_agent():
     w = world(agent=(2, 3), objects=[("circle", "yellow", 2, (2, 3))])
     for col in (2, 1, 0):
         w.step("pull")
-        assert w.object_at((2, col)) is not None and w.agent_position == P(2, col)
+        assert w.object_at((2, col)).color == "yellow" and w.agent_position == P(2, col)
         assert w.agent_direction is Heading.EAST
     before = w.copy()
     w.step("pull")
@@ -136,7 +136,8 @@ def test_pull_is_blocked_by_an_object_behind():
 
 
 def test_encode_layout_released_channel_order():
-    w = world(agent=(1, 1), heading=Heading.SOUTH, objects=[("circle", "red", 2, (1, 1)), ("square", "blue", 4, (5, 0))])
+    w = world(agent=(1, 1), heading=Heading.SOUTH,
+              objects=[("circle", "red", 2, (1, 1)), ("square", "blue", 4, (5, 0))])
     g = w.encode()
     assert g.shape == (6, 6, 16) and g.dtype == np.uint8
     # red circle size 2 + agent facing south on the same cell (both parts set, quirk Q11)
@@ -170,7 +171,7 @@ def test_copy_is_independent():
     w.encode()
     c = w.copy()
     c.step("walk"), c.step("push")
-    assert w.object_at((2, 1)) is not None and w.agent_position == P(2, 0)
+    assert w.object_at((2, 1)).color == "green" and w.agent_position == P(2, 0)
     assert w.encode()[2, 1, 0] == 1 and c.encode()[2, 2, 0] == 1
     assert w != c
 

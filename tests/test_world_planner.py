@@ -15,7 +15,6 @@ from gscan_ros.world import (
     split_command,
     turns,
 )
-from test_world_json import REAL_SITUATION
 
 P = Position
 L, R, W, S = "turn left", "turn right", "walk", "stay"
@@ -100,9 +99,9 @@ def test_push_blocked_from_the_start_emits_no_primitive():
     assert plan(s, "push a square") == [W] * 5
 
 
-def test_real_example_cautious_push_blocked_by_object_to_the_north():
+def test_real_example_cautious_push_blocked_by_object_to_the_north(real_situation):
     """GS example_prediction.json: target sequence without any push (§3.2)."""
-    s = Situation.from_json(REAL_SITUATION)
+    s = Situation.from_json(real_situation)
     assert plan(s, "push a green small square cautiously") == [L, R, R, L, W, L, L, R, R, L, W]
 
 
@@ -186,8 +185,8 @@ def test_zigzag_has_no_effect_on_the_interaction():
 
 
 # ---- §1.3 referents --------------------------------------------------------------------------
-def test_relative_size_compares_objects_with_the_same_name():
-    s = Situation.from_json(REAL_SITUATION)
+def test_relative_size_compares_objects_with_the_same_name(real_situation):
+    s = Situation.from_json(real_situation)
     assert resolve_target(s, "push a green small square") == WorldObject("square", "green", 1, P(1, 1))
     # "small square" compares squares of every color: green 1 and yellow 1 tie -> ambiguous
     with pytest.raises(SituationError, match="ambiguous"):
@@ -197,16 +196,16 @@ def test_relative_size_compares_objects_with_the_same_name():
     assert resolve_target(s, "walk to a blue big cylinder").size == 2
 
 
-def test_missing_or_ambiguous_referent_raises():
-    s = Situation.from_json(REAL_SITUATION)
+def test_missing_or_ambiguous_referent_raises(real_situation):
+    s = Situation.from_json(real_situation)
     with pytest.raises(SituationError, match="no object matches 'green circle'"):
         resolve_target(s, "walk to a green circle")
     with pytest.raises(SituationError, match="ambiguous"):
         resolve_target(s, "walk to a red cylinder")  # two red cylinders of size 3
 
 
-def test_demonstrate_checks_the_situation_target():
-    s = Situation.from_json(REAL_SITUATION)
+def test_demonstrate_checks_the_situation_target(real_situation):
+    s = Situation.from_json(real_situation)
     with pytest.raises(SituationError, match="target_object"):
         demonstrate(s, "walk to a yellow big circle")
 

@@ -159,7 +159,8 @@ def test_planner_reaches_the_target_and_interacts_to_the_wall(case):
         start = len(actions)
     assert world.agent_position == target.position
     walks = actions[:start].count(Action.WALK)
-    d = abs(situation.agent_position.row - target.position.row) + abs(situation.agent_position.col - target.position.col)
+    start_cell, goal = situation.agent_position, target.position
+    d = abs(start_cell.row - goal.row) + abs(start_cell.col - goal.col)
     assert walks == d  # the shortest route, whatever the manner
     prims = [a for a in actions if a in (Action.PUSH, Action.PULL)]
     if frame.verb == "walk":

@@ -1,6 +1,7 @@
 """`gscan-ros demo`: bring the stack up, give it commands, show and save the episodes.
 
-Runs `gscan-ros bringup`'s nodes in this process with a recorder. For each of
+Runs `gscan-ros bringup`'s nodes in this process with a recorder and drives them with
+a GscanCommander (`gscan_ros.nodes.commander`). For each of
 `--episodes` situations (the next one after a `reset_world` call) it sends the command
 that the situation was generated with (so it is satisfiable) or `--command`, prints the
 parse, the actions and whether they match the planner's demonstration, and writes one
@@ -11,13 +12,11 @@ from __future__ import annotations
 
 import argparse
 import os
-import threading
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
 from gscan_ros.cli.args import float_in, positive_int
-from gscan_ros.cli.bringup import Stack, StackOptions, add_stack_arguments
+from gscan_ros.cli.bringup import add_stack_arguments, stack_options
 from gscan_ros.errors import GscanError
 
 DEFAULT_OUT_ROOT = Path("out/demo")
@@ -40,81 +39,12 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-@dataclass
-class EpisodeResult:
-    actions: list = field(default_factory=list)  # Action, last one <eos>
-    attention: dict = field(default_factory=dict)  # word -> [mono8 Image per step]
-    status: list = field(default_factory=list)
-
-
-def _operator_node(words: list[str]):
-    """A node that sends commands, resets the world and collects episodes (defined lazily: needs rclpy)."""
-    from rclpy.node import Node
-    from sensor_msgs.msg import Image
-    from std_msgs.msg import String
-    from std_srvs.srv import Trigger
-
-    from gscan_ros.nodes import common
-    from msg_adapters import msg_to_action
-
-    class DemoOperator(Node):
-        def __init__(self) -> None:
-            super().__init__("demo_operator")
-            self.result = EpisodeResult()
-            self.done = threading.Event()
-            self.recorded = 0  # episodes the recorder reported
-            self.command_pub = self.create_publisher(String, common.COMMAND, common.EVENT_QOS)
-            self.reset_client = self.create_client(Trigger, common.RESET_WORLD)
-            self.create_subscription(String, common.ACTION, self.on_action, common.EVENT_QOS)
-            self.create_subscription(String, common.STATUS, self.on_status, common.EVENT_QOS)
-            for word in words:
-                topic = f"{common.ATTENTION_PREFIX}/{common.topic_token(word)}"
-                self.create_subscription(Image, topic, self._attention_sink(word), common.EVENT_QOS)
-
-        def _attention_sink(self, word: str):
-            return lambda msg: self.result.attention.setdefault(word, []).append(msg)
-
-        def start_episode(self) -> EpisodeResult:
-            self.result = EpisodeResult()
-            self.done.clear()
-            return self.result
-
-        def reset_world(self, timeout: float) -> None:
-            if not self.reset_client.wait_for_service(timeout_sec=timeout):
-                raise GscanError("reset_world service not available")
-            future = self.reset_client.call_async(Trigger.Request())
-            deadline = time.monotonic() + timeout
-            while not future.done():
-                if time.monotonic() > deadline:
-                    raise GscanError(f"reset_world did not answer within {timeout:.0f} s")
-                time.sleep(0.005)
-            if not future.result().success:
-                raise GscanError(f"reset_world failed: {future.result().message}")
-
-        def on_action(self, msg: String) -> None:
-            try:
-                action = msg_to_action(msg)
-            except GscanError:
-                return  # not the policy's; the world simulator reports it
-            self.result.actions.append(action)
-            if action.token == "<eos>":
-                self.done.set()
-
-        def on_status(self, msg: String) -> None:
-            self.result.status.append(msg.data)
-            if msg.data.startswith("episode_recorder_node: recorded episode"):
-                self.recorded += 1
-
-    return DemoOperator
-
-
 def run(args: argparse.Namespace) -> int:
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    from std_msgs.msg import String
-
     from gscan_ros.data.sources import episode_source
-    from gscan_ros.nodes.episode_recorder_node import EpisodeRecorderNode
+    from gscan_ros.nodes.commander import GscanCommander
     from gscan_ros.nodes.policy_node import PolicyNode
+    from gscan_ros.nodes.stack import Stack
 
     out = args.out or DEFAULT_OUT_ROOT / time.strftime("%Y%m%d_%H%M%S")
     if out.exists() and not out.is_dir():
@@ -122,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
     if out.exists() and any(out.iterdir()) and not args.overwrite:
         raise GscanError(f"--out {out} is not empty; pass --overwrite to replace an earlier demo there")
     out.mkdir(parents=True, exist_ok=True)
-    options = StackOptions.from_args(args, record=out / "bag", record_images=True)
+    options = stack_options(args, record=out / "bag", record_images=True)
     dataset = str(args.dataset) if args.dataset else ""
     source = episode_source(dataset, args.split, args.index, args.seed, args.grid_size)  # the world node's sequence
     episodes = [source.next() for _ in range(args.episodes)]
@@ -132,44 +62,35 @@ def run(args: argparse.Namespace) -> int:
         policy = stack.node(PolicyNode).policy
         graphs = [policy.parse(args.command_text or e.command) for e in episodes]  # CommandError for --command
         words = list(dict.fromkeys(node.word for g in graphs for node in g.nodes))
-        operator = _operator_node(words)()
-        stack.add(operator)
-        stack.start()
-        _wait(lambda: stack.node(EpisodeRecorderNode).ready, "episode_recorder_node to receive the world state")
-        _wait(lambda: operator.command_pub.get_subscription_count() > 0, "parser_node to subscribe to 'command'")
-        for i, (episode, graph) in enumerate(zip(episodes, graphs), start=1):
-            if i > 1:
-                operator.reset_world(args.timeout)
-            result = operator.start_episode()
-            operator.command_pub.publish(String(data=graph.typed or graph.command))  # as typed: parser_node maps it
-            if not operator.done.wait(args.timeout):
-                raise GscanError(f"no <eos> within {args.timeout:.0f} s; status: {result.status[-3:]}")
-            _wait(lambda: operator.recorded >= i, f"the recorder to store episode {i}", args.timeout)
-            print(f"--- episode {i} of {len(episodes)}")
-            matched += _report(graph, episode, result, out / f"episode_{i}.gif")
+        with GscanCommander("demo_operator", attention_words=words) as commander:
+            stack.start()
+            stack.wait_until_recording()
+            commander.wait_until_ready()
+            for i, (episode, graph) in enumerate(zip(episodes, graphs), start=1):
+                if i > 1:
+                    commander.reset_world(args.timeout)
+                # Sent as typed: parser_node maps a paraphrase to its gSCAN command.
+                result = commander.run_episode(graph.typed or graph.command, args.timeout)
+                if not result.finished:
+                    raise GscanError(f"episode {i} {result.outcome} without <eos> after {args.timeout:.0f} s; "
+                                     f"status: {result.status[-3:]}")
+                commander.wait_for_status(f"episode_recorder_node: recorded episode {i - 1} ", args.timeout)
+                print(f"--- episode {i} of {len(episodes)}")
+                matched += _report(graph, episode, result, out / f"episode_{i}.gif")
     print(f"matched the planner in {matched} of {len(episodes)} episodes")
     print(f"bag:      {out / 'bag'}")
     print(f"output:   {out.resolve()}")
     return 0
 
 
-def _wait(condition, what: str, timeout: float = 30.0) -> None:
-    """Poll a condition that the stack's executor thread makes true (bounded)."""
-    deadline = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > deadline:
-            raise GscanError(f"timed out after {timeout:.0f} s waiting for {what}")
-        time.sleep(0.005)
-
-
-def _report(graph, episode, result: EpisodeResult, gif_path: Path) -> bool:
-    """Print one episode, write its GIF; True when the actions equal the planner's."""
+def _report(graph, episode, result, gif_path: Path) -> bool:
+    """Print one episode (a GscanCommander EpisodeResult), write its GIF; True when the actions equal the planner's."""
     from gscan_ros.world import demonstrate
     from gscan_ros.world.render import render_frames, save_gif
     from msg_adapters import msg_to_attention
 
     actions = result.actions
-    moves = [a.token for a in actions[:-1]]
+    moves = [a.token for a in result.moves]
     try:
         gold = [a.token for a in demonstrate(episode.situation, graph.command)]
     except GscanError as exc:

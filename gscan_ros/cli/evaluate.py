@@ -3,10 +3,15 @@ from __future__ import annotations
 
 import argparse
 
-from gscan_ros.cli.args import add_device_argument, existing_file, existing_path, nonnegative_int, output_dir, positive_int
-
-EVAL_SPLITS = ("test", "visual_easier", "visual", "situational_1", "situational_2", "contextual",
-               "adverb_1", "adverb_2", "target_lengths")
+from gscan_ros.cli.args import (
+    add_device_argument,
+    existing_file,
+    existing_path,
+    nonnegative_int,
+    output_dir,
+    positive_int,
+)
+from gscan_ros.data.splits import ALL_TEST_SPLITS, SPLIT_LETTERS
 
 
 def register(subparsers) -> None:
@@ -15,8 +20,8 @@ def register(subparsers) -> None:
         help="closed-loop exact match / token accuracy per split",
         description="The model acts, the World executes, the new state is fed back (batched over many "
         "episodes). Writes results.json, results.md and predictions.json (gSCAN prediction format; "
-        "per-word attention maps with --attention). Split letters: A test, B visual_easier, C visual, D situational_1, "
-        "E situational_2, F contextual, G adverb_1, H adverb_2, I target_lengths. For G at k = 5/10/50, "
+        "per-word attention maps with --attention). Split letters: "
+        + ", ".join(f"{letter} {split}" for split, letter in SPLIT_LETTERS.items()) + ". For G at k = 5/10/50, "
         "train models on data made with `gscan-ros generate --k-shot K` and evaluate each. Under "
         "`torchrun --nproc_per_node N -m gscan_ros.cli evaluate ...` the N processes share the batches and "
         "rank 0 writes the same files one process would (docs/scaling.md).",
@@ -25,7 +30,8 @@ def register(subparsers) -> None:
                    help="checkpoint file (default: the shipped model)")
     p.add_argument("--data", required=True, type=existing_path, metavar="DIR",
                    help="dataset directory/file (dataset.txt or bags)")
-    p.add_argument("--splits", nargs="+", metavar="SPLIT", help="splits to evaluate (default: every test split present)")
+    p.add_argument("--splits", nargs="+", metavar="SPLIT",
+                   help="splits to evaluate (default: every test split present)")
     p.add_argument("--max-examples", type=nonnegative_int, default=0, metavar="N",
                    help="seeded subset of N episodes per split (0 = all)")
     p.add_argument("--out", type=output_dir, default="runs/eval", metavar="DIR",
@@ -82,9 +88,9 @@ def _selected_episodes(args: argparse.Namespace) -> list:
     for ep in _episodes(args.data, args.splits):
         by_split.setdefault(ep.split, []).append(ep)
     if not by_split:
-        raise DatasetFormatError(f"{str(args.data)!r} has none of the splits {list(args.splits or EVAL_SPLITS)}")
+        raise DatasetFormatError(f"{str(args.data)!r} has none of the splits {list(args.splits or ALL_TEST_SPLITS)}")
     episodes = []
-    for split, eps in by_split.items():
+    for eps in by_split.values():
         if args.max_examples and len(eps) > args.max_examples:
             pick = np.random.default_rng([args.seed, len(eps)]).choice(len(eps), args.max_examples, replace=False)
             eps = [eps[i] for i in sorted(pick)]
@@ -100,10 +106,10 @@ def _episodes(path: str, splits: list[str] | None):
     if splits:
         yield from iter_episodes(path, splits)
     elif is_bag(path) or split_bags(path):
-        yield from iter_episodes(path, EVAL_SPLITS)
+        yield from iter_episodes(path, ALL_TEST_SPLITS)
     else:
         from gscan_ros.data.dataset import Example, iter_raw_examples
 
         for split, index, raw in iter_raw_examples(path):
-            if split in EVAL_SPLITS:
+            if split in ALL_TEST_SPLITS:
                 yield Example.from_json(raw).to_episode(split, index)

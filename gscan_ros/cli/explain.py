@@ -234,14 +234,14 @@ def _metric_episodes(args: argparse.Namespace) -> list:
     of --max-examples exactly as `evaluate --max-examples` cuts it."""
     import numpy as np
 
-    from gscan_ros.cli.evaluate import EVAL_SPLITS
     from gscan_ros.cli.evaluate import _episodes as evaluation_episodes
+    from gscan_ros.data.splits import ALL_TEST_SPLITS
 
     by_split: dict[str, list] = {}
     for ep in evaluation_episodes(args.data, args.splits):
         by_split.setdefault(ep.split, []).append(ep)
     if not by_split:
-        raise GscanError(f"{args.data} has none of the splits {list(args.splits or EVAL_SPLITS)}")
+        raise GscanError(f"{args.data} has none of the splits {list(args.splits or ALL_TEST_SPLITS)}")
     episodes = []
     for eps in by_split.values():
         if args.max_examples and len(eps) > args.max_examples:

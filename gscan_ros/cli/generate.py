@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import argparse
 
-from gscan_ros.cli.args import (available_cpus, float_in, int_in, nonnegative_int, output_dir, positive_int,
-                                worker_count)
+from gscan_ros.cli.args import available_cpus, float_in, int_in, nonnegative_int, output_dir, positive_int, worker_count
+from gscan_ros.data.splits import SPLIT_KINDS
 from gscan_ros.world.types import SUPPORTED_GRID_SIZES
 
 
@@ -24,7 +24,7 @@ def register(subparsers) -> None:
     size.add_argument("--examples", type=positive_int, metavar="N",
                       help="generate a seeded subset of N candidate examples (spread over all commands)")
     size.add_argument("--full", action="store_true", help="generate every candidate (the full dataset)")
-    p.add_argument("--split-kind", choices=("compositional", "length"), default="compositional",
+    p.add_argument("--split-kind", choices=SPLIT_KINDS, default="compositional",
                    help="compositional splits A-H (default) or the target-length split I")
     p.add_argument("--workers", type=worker_count, default=available_cpus(), metavar="N",
                    help="worker processes, at most the available CPUs (default: all of them)")

@@ -3,7 +3,14 @@ from __future__ import annotations
 
 import argparse
 
-BUILTIN_PARSERS = ("semantic", "constituency", "dependency")
+
+def lexicon_name(text: str) -> str:
+    """A `Lexicon.named` name; checked on use, so registering `parse` does not load NLTK."""
+    from gscan_ros.language.lexicon import LEXICONS
+
+    if text not in LEXICONS:
+        raise argparse.ArgumentTypeError(f"invalid choice {text!r} (choose from {', '.join(LEXICONS)})")
+    return text
 
 
 def register(subparsers) -> None:
@@ -16,23 +23,24 @@ def register(subparsers) -> None:
     )
     p.add_argument("words", nargs="+", metavar="COMMAND",
                    help='e.g. "walk to a red small circle cautiously" or "Walk to the big red circle"')
-    p.add_argument("--parser", default="semantic", help=f"{' | '.join(BUILTIN_PARSERS)} (default: semantic)")
+    p.add_argument("--parser", help="a registered parser (default: the semantic parser; --all lists the built-in ones)")
     p.add_argument("--all", action="store_true", help="print the parse of every built-in parser")
     p.add_argument("--json", action="store_true", help="print the graph JSON (one line per parser)")
     p.add_argument(
         "--lexicon",
-        choices=("wordnet", "none"),
+        type=lexicon_name,
         default="wordnet",
-        help="share modules between WordNet-related words (default) or not",
+        metavar="NAME",
+        help="wordnet: share modules between WordNet-related words (default); none: no sharing",
     )
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from gscan_ros.language import Lexicon, canonicalize, get_parser
+    from gscan_ros.language import BUILTIN_PARSERS, DEFAULT_PARSER, Lexicon, canonicalize, get_parser
 
-    lexicon = Lexicon.from_wordnet() if args.lexicon == "wordnet" else Lexicon.none()
-    names = BUILTIN_PARSERS if args.all else (args.parser,)
+    lexicon = Lexicon.named(args.lexicon)
+    names = BUILTIN_PARSERS if args.all else (args.parser or DEFAULT_PARSER,)
     text = " ".join(args.words)
     graphs = [get_parser(name, lexicon).parse(text) for name in names]
     canonical = canonicalize(text)

@@ -24,7 +24,8 @@ def register(subparsers) -> None:
                    help="dataset.txt, a directory holding it, or a bag directory")
     p.add_argument("--splits", help="comma-separated splits to check (default: all)")
     p.add_argument("--limit", type=positive_int, metavar="N", help="check at most N examples")
-    p.add_argument("--show", type=nonnegative_int, default=5, metavar="K", help="mismatches to print in full (default: 5)")
+    p.add_argument("--show", type=nonnegative_int, default=5, metavar="K",
+                   help="mismatches to print in full (default: 5)")
     p.add_argument("--allow-partial", action="store_true",
                    help="accept a bag that lost data (the loss is still printed; exit 0 unless a mismatch)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -25,8 +25,9 @@ from typing import Iterable
 
 import numpy as np
 
-from gscan_ros.data.bag import BagEpisodeReader, GraphCache, episode_from_header
+from gscan_ros.data.bag_format import GraphCache, episode_from_header
 from gscan_ros.data.bag_metadata import CACHE_DIR, METADATA_FILE, read_bag_info
+from gscan_ros.data.bag_reader import BagEpisodeReader
 from gscan_ros.data.episode import Episode
 from gscan_ros.errors import DatasetFormatError
 from gscan_ros.world.types import Action

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import yaml
 
-from gscan_ros.data.bag_schema import TOPICS, VOLATILE_QOS, YamlDumper, type_hash
+from gscan_ros.data.bag_schema import YamlDumper, offered_qos, type_hash
 from gscan_ros.errors import DatasetFormatError
 
 METADATA_FILE = "metadata.yaml"
@@ -98,7 +98,7 @@ def write_metadata(
                     "name": topic,
                     "type": msg_type,
                     "serialization_format": "cdr",
-                    "offered_qos_profiles": [TOPICS[topic].qos if topic in TOPICS else VOLATILE_QOS],
+                    "offered_qos_profiles": [offered_qos(topic)],
                     "type_description_hash": type_hash(msg_type),
                 },
                 "message_count": counts.get(topic, 0),

@@ -1,5 +1,8 @@
 """Topics, QoS and ros2msg schemas of gscan_ros bags (rosbag2 + MCAP, DESIGN.md "Bags").
 
+Topic names, types and offered QoS come from the stack's interface table
+(`gscan_ros.interface`), so a bag records what the live publishers offer.
+
 The schema text is what rosbag2 itself records: the installed `.msg` file of the type
 followed by every nested type's `.msg`, each introduced by a `MSG: pkg/Type` line under
 a row of 80 '='. The RIHS01 type hash comes from the `.json` type description the ROS
@@ -16,6 +19,9 @@ from pathlib import Path
 
 import yaml
 
+from gscan_ros import interface
+from gscan_ros.interface import Endpoint, Qos
+
 SEPARATOR = "=" * 80
 PRIMITIVES = frozenset(
     "bool byte char float32 float64 int8 uint8 int16 uint16 int32 uint32 int64 uint64 string wstring".split()
@@ -25,13 +31,13 @@ PRIMITIVES = frozenset(
 _INFINITE = {"sec": 2147483647, "nsec": 4294967295}
 
 
-def _qos(depth: int, durability: str) -> dict:
-    """One offered QoS profile, keys in rosbag2's order."""
+def rosbag2_qos(qos: Qos) -> dict:
+    """One offered QoS profile of the interface table, keys in rosbag2's order."""
     return {
         "history": "keep_last",
-        "depth": depth,
-        "reliability": "reliable",
-        "durability": durability,
+        "depth": qos.depth,
+        "reliability": qos.reliability,
+        "durability": qos.durability,
         "deadline": dict(_INFINITE),
         "lifespan": dict(_INFINITE),
         "liveliness": "automatic",
@@ -40,8 +46,8 @@ def _qos(depth: int, durability: str) -> dict:
     }
 
 
-LATCHED_QOS = _qos(1, "transient_local")
-VOLATILE_QOS = _qos(10, "volatile")
+# A topic outside the interface table (someone else's, mixed into a bag): rosbag2's default.
+DEFAULT_QOS = rosbag2_qos(Qos(10))
 
 
 class YamlDumper(yaml.SafeDumper):
@@ -53,21 +59,37 @@ class YamlDumper(yaml.SafeDumper):
 
 @dataclass(frozen=True)
 class TopicSpec:
+    """A recorded topic of the interface table, named as the bag stores it."""
+
     name: str  # absolute topic name as stored in the bag
     msg_type: str  # "pkg/msg/Type"
-    latched: bool  # DESIGN.md: world-state-like topics are TRANSIENT_LOCAL, KEEP_LAST 1
+    offered: Qos  # what the live publisher offers (gscan_ros.interface)
+
+    @property
+    def latched(self) -> bool:
+        return self.offered.latched
 
     @property
     def qos(self) -> dict:
-        return LATCHED_QOS if self.latched else VOLATILE_QOS
+        return rosbag2_qos(self.offered)
 
 
-COMMAND = TopicSpec("/command", "std_msgs/msg/String", latched=False)
-COMMAND_GRAPH = TopicSpec("/command_graph", "std_msgs/msg/String", latched=True)
-OBSERVATION = TopicSpec("/observation", "std_msgs/msg/UInt8MultiArray", latched=True)
-ACTION = TopicSpec("/action", "std_msgs/msg/String", latched=False)
-WORLD_IMAGE = TopicSpec("/world_image", "sensor_msgs/msg/Image", latched=True)
-TOPICS: dict[str, TopicSpec] = {t.name: t for t in (COMMAND, COMMAND_GRAPH, OBSERVATION, ACTION, WORLD_IMAGE)}
+def _spec(endpoint: Endpoint) -> TopicSpec:
+    return TopicSpec(endpoint.bag_topic, endpoint.type, endpoint.qos)
+
+
+COMMAND = _spec(interface.COMMAND)
+COMMAND_GRAPH = _spec(interface.COMMAND_GRAPH)
+OBSERVATION = _spec(interface.OBSERVATION)
+ACTION = _spec(interface.ACTION)
+WORLD_IMAGE = _spec(interface.WORLD_IMAGE)
+TOPICS: dict[str, TopicSpec] = {t.name: t for t in map(_spec, interface.RECORDED)}
+
+
+def offered_qos(topic: str) -> dict:
+    """The rosbag2 QoS profile a bag records for `topic`: the interface table's, else rosbag2's default."""
+    endpoint = interface.endpoint_of(topic)
+    return rosbag2_qos(endpoint.qos) if endpoint is not None and endpoint.qos is not None else DEFAULT_QOS
 
 
 def msg_type_name(msg_class: type) -> str:

@@ -30,12 +30,13 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Any, Generic, TypeVar
 
+from gscan_ros.data.bag_format import OUTCOME_ABORTED, OUTCOME_COMPLETE
 from gscan_ros.world.types import Action
 
 T = TypeVar("T")
 
-COMPLETE = "complete"
-ABORTED = "aborted"
+COMPLETE = OUTCOME_COMPLETE
+ABORTED = OUTCOME_ABORTED
 RESET_REASON = "the world was reset"
 NO_REPLY = "no reply to the episode's previous action has arrived"
 
@@ -68,6 +69,10 @@ class StampedBuffer(Generic[T]):
 
     def remove(self, item: Stamped[T]) -> None:
         self._items.remove(item)
+
+    def resize(self, capacity: int) -> None:
+        """Keep at most `capacity` messages from now on (the newest, when it shrinks)."""
+        self._items = deque(self._items, maxlen=capacity)
 
     def latest_before(self, t_ns: int, *, inclusive: bool = False) -> Stamped[T] | None:
         """Newest item published before `t_ns` (or at it, when inclusive)."""
@@ -147,12 +152,27 @@ class EpisodeLog:
     """
 
     def __init__(self, capacity: int, *, images: bool = False) -> None:
+        self.capacity = capacity
         self.graphs: StampedBuffer[Any] = StampedBuffer(capacity)
         self.actions: StampedBuffer[Action] = StampedBuffer(capacity)
         self.observations: StampedBuffer[Any] = StampedBuffer(capacity)
         self.situations: StampedBuffer[Any] = StampedBuffer(capacity)
         self.images: StampedBuffer[Any] | None = StampedBuffer(capacity) if images else None
         self._ended_ns = -1  # the end of the last episode that was returned or abandoned
+
+    def resize(self, capacity: int) -> None:
+        """Bound every buffer to `capacity` messages (a live recorder's `buffer_messages`)."""
+        self.capacity = capacity
+        for buffer in (self.graphs, self.actions, self.observations, self.situations, self.images):
+            if buffer is not None:
+                buffer.resize(capacity)
+
+    def record_images(self, on: bool) -> None:
+        """Pair images with observations (on) or not (off); a step without its image has none."""
+        if on and self.images is None:
+            self.images = StampedBuffer(self.capacity)
+        elif not on:
+            self.images = None
 
     def add_action(self, t_ns: int, action: Action, seq: int | None = None) -> EpisodeRecord | None:
         """Buffer an action; for an `<eos>`, the complete episode it closes.
@@ -249,11 +269,15 @@ class EpisodeLog:
         return EpisodeRecord(graph, situation, tuple(steps), end_ns, left_out)
 
     def _end(self, record: EpisodeRecord) -> None:
+        """Forget what only the ended episode used; its last state (observation and the
+        situation published with it) may start the next one."""
         self._ended_ns = record.end_ns
         keep_from = record.steps[-1].observation.t_ns
-        for buffer in (self.graphs, self.actions, self.observations, self.situations, self.images):
+        for buffer in (self.graphs, self.actions, self.observations, self.images):
             if buffer is not None:
                 buffer.drop_until(keep_from)
+        situation = self.situations.latest_before(keep_from, inclusive=True)
+        self.situations.drop_until(keep_from if situation is None else situation.t_ns)
 
     def _image_of(self, observation: Stamped) -> Stamped | None:
         if self.images is None:

@@ -46,13 +46,19 @@ from gscan_ros.data.sampling import (
     sample_placements,
     sample_situations,
 )
-from gscan_ros.data.splits import (K_SHOT_SPLIT, SPLIT_NAMES, SplitResult, assign_compositional, assign_length,
-                                   held_out_splits)
+from gscan_ros.data.splits import (
+    K_SHOT_SPLIT,
+    SPLIT_KINDS,
+    SPLIT_NAMES,
+    SplitResult,
+    assign_compositional,
+    assign_length,
+    held_out_splits,
+)
 from gscan_ros.errors import GscanError
 from gscan_ros.world import Action, demonstrate
 from gscan_ros.world.types import SUPPORTED_GRID_SIZES
 
-SPLIT_KINDS = ("compositional", "length")
 FORMATS = ("txt", "mcap")
 # Independent seed streams derived from the one CLI seed.
 _STREAM_PLACEMENTS, _STREAM_SUBSET, _STREAM_SPLITS, _STREAM_OBJECTS = range(4)

@@ -17,8 +17,8 @@ Generator in whole blocks, so a seed alone fixes the output and sampling stays c
 from __future__ import annotations
 
 import itertools
-from functools import lru_cache
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import NamedTuple
 
 import numpy as np

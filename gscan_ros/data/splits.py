@@ -51,6 +51,23 @@ HOLD_OUT_RULES: tuple[HoldOutRule, ...] = (
 )
 
 
+# Letters of the test splits, as the gSCAN paper (Ruis et al. 2020, Table 1) and Kuo et
+# al. (2021, Tables 1-2) name them: A the random test split, B-H the hold-out rules, I
+# the target-length split.
+SPLIT_LETTERS: dict[str, str] = {
+    "test": "A", **{rule.split: rule.letter for rule in sorted(HOLD_OUT_RULES, key=lambda r: r.letter)},
+    "target_lengths": "I",
+}
+# Test splits of each dataset kind, in letter order (the length data's `test` holds the
+# trained-on lengths, e.g. Kuo et al. Table 2's row 15).
+TEST_SPLITS: dict[str, tuple[str, ...]] = {
+    "compositional": tuple(s for s in SPLIT_LETTERS if s != "target_lengths"),
+    "length": ("test", "target_lengths"),
+}
+SPLIT_KINDS = tuple(TEST_SPLITS)
+ALL_TEST_SPLITS = tuple(SPLIT_LETTERS)
+
+
 def held_out_splits(command: Command, target: ObjectSpec, direction: str) -> tuple[str, ...]:
     """Keys of every hold-out rule the example matches (empty: training pool)."""
     return tuple(rule.split for rule in HOLD_OUT_RULES if rule.holds_out(command, target, direction))

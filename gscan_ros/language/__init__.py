@@ -4,20 +4,23 @@ from gscan_ros.language.canonical import Canonical, WordMapping, canonicalize
 from gscan_ros.language.dependency import graph_from_dependencies
 from gscan_ros.language.grammar import all_commands, gscan_grammar, phrase_grammar
 from gscan_ros.language.graph import CommandGraph, GraphEdge, GraphNode
-from gscan_ros.language.lexicon import Concept, Lexicon
+from gscan_ros.language.lexicon import LEXICONS, Concept, Lexicon
 from gscan_ros.language.parser import Parser
-from gscan_ros.language.registry import available_parsers, get_parser, register_parser
+from gscan_ros.language.registry import BUILTIN_PARSERS, DEFAULT_PARSER, available_parsers, get_parser, register_parser
 from gscan_ros.language.synonyms import SynonymTable, synonym_table
 from gscan_ros.language.tokens import CONTENT_WORDS, MAX_TOKENS, VOCABULARY, tokenize
 
 __all__ = [
     "ALL_COMMANDS",
+    "BUILTIN_PARSERS",
     "CONTENT_WORDS",
     "Canonical",
     "CommandGraph",
     "Concept",
+    "DEFAULT_PARSER",
     "GraphEdge",
     "GraphNode",
+    "LEXICONS",
     "Lexicon",
     "MAX_TOKENS",
     "Parser",

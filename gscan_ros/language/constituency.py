@@ -13,7 +13,7 @@ from nltk.tree import Tree
 
 from gscan_ros.language.grammar import parse_tree, phrase_grammar
 from gscan_ros.language.graph import CommandGraph
-from gscan_ros.language.parser import GraphAssembler, GrammarParser
+from gscan_ros.language.parser import GrammarParser, GraphAssembler
 
 SKIPPED_TAGS = frozenset({"DT", "TO", "IN"})  # function words carry no module
 LEAF_PHRASES = frozenset({"ADVP", "SBAR"})  # adverbials are single leaves named by their text

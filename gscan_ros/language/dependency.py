@@ -23,7 +23,7 @@ from gscan_ros.language.constituency import tag
 from gscan_ros.language.grammar import parse_tree, phrase_grammar
 from gscan_ros.language.graph import DUMMY_ROOT_WORD, CommandGraph
 from gscan_ros.language.lexicon import Lexicon
-from gscan_ros.language.parser import GraphAssembler, GrammarParser
+from gscan_ros.language.parser import GrammarParser, GraphAssembler
 
 # Canonical argument order: core arguments, then modifiers of nouns, then of verbs.
 ARG_LABEL_ORDER = ("nsubj", "obj", "iobj", "obl", "nmod", "amod", "nummod", "advmod", "advcl", "xcomp", "conj")

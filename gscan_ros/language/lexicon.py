@@ -57,6 +57,8 @@ _LEXNAMES = (
 )
 _LEXNAME_POS = {"adj": 3, "adv": 4, "noun": 1, "verb": 2}
 LEXICON_FORMAT = 1
+# Lexicon names a config or command line may give (`Lexicon.named`).
+LEXICONS = ("wordnet", "none")
 
 
 @dataclass(frozen=True)
@@ -94,6 +96,13 @@ class Lexicon:
         object.__setattr__(self, "_by_key", {c.key: c for c in self.concepts})
 
     # ------------------------------------------------------------ construction
+    @classmethod
+    def named(cls, name: str) -> "Lexicon":
+        """The lexicon a config's `lexicon: wordnet | none` means."""
+        if name not in LEXICONS:
+            raise LexiconError(f"lexicon must be one of {list(LEXICONS)}, got {name!r}")
+        return cls.from_wordnet() if name == "wordnet" else cls.none()
+
     @classmethod
     def none(cls) -> "Lexicon":
         """No sharing: every word is its own module (the 'no WordNet' ablation)."""

@@ -17,6 +17,9 @@ _FACTORIES: dict[str, ParserFactory] = {
     ConstituencyParser.name: ConstituencyParser,
     DependencyParser.name: DependencyParser,
 }
+# The three parsers of Kuo et al. (2021), whatever else is registered later.
+BUILTIN_PARSERS: tuple[str, ...] = tuple(_FACTORIES)
+DEFAULT_PARSER = SemanticParser.name
 
 
 def register_parser(name: str, factory: ParserFactory) -> None:

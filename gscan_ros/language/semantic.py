@@ -18,7 +18,7 @@ from functools import cache
 
 from gscan_ros.language.grammar import all_commands, gscan_grammar, parse_tree
 from gscan_ros.language.graph import CommandGraph
-from gscan_ros.language.parser import GraphAssembler, GrammarParser
+from gscan_ros.language.parser import GrammarParser, GraphAssembler
 from gscan_ros.language.tokens import tokenize
 
 ARG_LABEL = "arg"

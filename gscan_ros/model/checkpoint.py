@@ -15,6 +15,7 @@ fit the model it is loaded into raises `CheckpointError` naming the mismatch.
 from __future__ import annotations
 
 import os
+from dataclasses import asdict, fields
 from pathlib import Path
 
 import torch
@@ -25,6 +26,21 @@ from gscan_ros.language.lexicon import Lexicon
 
 FORMAT = 1
 KINDS = ("compositional", "seq2seq")
+
+
+class SerializableConfig:
+    """to_dict/from_dict of the frozen config dataclasses that checkpoints store (tuples
+    as lists; unknown keys are a CheckpointError)."""
+
+    def to_dict(self) -> dict:
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, d: dict):
+        unknown = sorted(set(d) - {f.name for f in fields(cls)})
+        if unknown:
+            raise CheckpointError(f"unknown {cls.__name__} keys {unknown}")
+        return cls(**d)
 
 
 def build_model(kind: str, model_config: dict, vocabulary: dict) -> nn.Module:
@@ -61,7 +77,8 @@ def checkpoint_dict(model: nn.Module, *, parser: str, lexicon: Lexicon, step: in
         "vocabulary": model_vocabulary(model),
         "lexicon": lexicon.to_dict(),
         "parser": parser,
-        "state_dict": {k: v.detach().to("cpu", copy=True) for k, v in model.state_dict().items()},  # CPU, whatever the device
+        # on the CPU, whatever the device
+        "state_dict": {k: v.detach().to("cpu", copy=True) for k, v in model.state_dict().items()},
         "step": int(step),
         "metrics": dict(metrics),
         **training_state,
@@ -108,7 +125,8 @@ def validate_checkpoint(ckpt: dict, path: str | os.PathLike) -> None:
     if not isinstance(vocabulary, list) or not vocabulary:
         raise CheckpointError(f"{where}: empty vocabulary (no {entries})")
     if kind == "compositional":
-        from gscan_ros.model.compositional import ModelConfig as config_class, ModuleTable
+        from gscan_ros.model.compositional import ModelConfig as config_class
+        from gscan_ros.model.compositional import ModuleTable
 
         for spec in ModuleTable.from_list(vocabulary).specs:
             if spec.arity < 0 or spec.num_heads < 1:
@@ -168,7 +186,8 @@ def restore_model(ckpt: dict, model: nn.Module | None = None) -> nn.Module:
             raise CheckpointError(f"checkpoint lacks tensor {key!r}")
         if tuple(state[key].shape) != tuple(value.shape):
             raise CheckpointError(
-                f"tensor {key!r} has shape {tuple(state[key].shape)} in the checkpoint, {tuple(value.shape)} in the model"
+                f"tensor {key!r} has shape {tuple(state[key].shape)} in the checkpoint, "
+                f"{tuple(value.shape)} in the model"
             )
     extra = sorted(set(state) - set(own))
     if extra:
@@ -189,5 +208,8 @@ def _vocabulary_diff(mine: dict, theirs: dict) -> str:
         return {m["key"] for m in v.get("modules", [])} | set(v.get("tokens", []))
 
     only_model, only_ckpt = sorted(keys(mine) - keys(theirs)), sorted(keys(theirs) - keys(mine))
-    detail = f"model-only {only_model[:5]}, checkpoint-only {only_ckpt[:5]}" if only_model or only_ckpt else "arity/heads differ"
+    if only_model or only_ckpt:
+        detail = f"model-only {only_model[:5]}, checkpoint-only {only_ckpt[:5]}"
+    else:
+        detail = "arity/heads differ"
     return f"checkpoint vocabulary does not match the model's ({detail})"

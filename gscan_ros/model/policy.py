@@ -80,7 +80,7 @@ class Policy:
 
     @torch.no_grad()
     def rollout(self, graphs: list[CommandGraph]):
-        """A batched closed-loop decoder for `graphs` (see `compositional.Rollout`)."""
+        """A batched closed-loop decoder for `graphs` (see `rollout.Rollout`)."""
         return self.model.rollout(graphs)
 
     # ---- single-episode API (ROS policy node)
@@ -111,6 +111,5 @@ class Policy:
             raise CheckpointError(f"observation has shape {obs.shape}; the model expects {expected}")
         logits, maps = self._rollout.step(obs[None].astype(np.uint8, copy=False))
         action = Action(int(logits[0].argmax()))
-        self._rollout.advance(logits.argmax(-1))
         attention, antonyms = self._rollout.word_maps(maps, 0) if maps is not None else ({}, {})
         return StepOutput(action, attention, antonyms)

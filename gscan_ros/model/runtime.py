@@ -4,7 +4,12 @@ torch is imported inside the functions, so the CLI can offer `DEVICES` without l
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from gscan_ros.errors import GscanError
+
+if TYPE_CHECKING:
+    import torch
 
 DEVICES = ("auto", "cpu", "cuda")
 

@@ -8,6 +8,7 @@ gold previous actions; closed-loop decoding feeds its own.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -16,7 +17,10 @@ import torch.nn.functional as F
 from torch import nn
 
 from gscan_ros.errors import CommandError
-from gscan_ros.model.compositional import DictConfig, ModelConfig, TeacherOutput, VisualEncoder, sparse_states
+from gscan_ros.model.checkpoint import SerializableConfig
+from gscan_ros.model.compositional import ModelConfig, VisualEncoder
+from gscan_ros.model.sparse_encoder import sparse_states
+from gscan_ros.model.teacher_forcing import TeacherOutput
 from gscan_ros.world.types import GRID_SIZE, Action
 
 
@@ -28,7 +32,7 @@ def command_vocabulary() -> list[str]:
 
 
 @dataclass(frozen=True)
-class Seq2SeqConfig(DictConfig):
+class Seq2SeqConfig(SerializableConfig):
     """Hyper-parameters of the baseline (defaults: MM `all_experiments.sh`)."""
 
     embedding_dim: int = 25
@@ -63,6 +67,29 @@ class Seq2SeqConfig(DictConfig):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and 0 <= value < 1):
                 raise ValueError(f"{name} must be a number in [0, 1), got {value!r}")
+
+
+@dataclass
+class Seq2SeqBatch:
+    """Teacher-forcing inputs of the baseline: it reads the command and the initial state only."""
+
+    commands: list[str]
+    first_states: np.ndarray  # uint8 [n, g, g, C]
+    targets: torch.Tensor  # [n, T_max] action ids (EOS last), -1 past an episode's end
+
+
+@dataclass
+class DecoderState:
+    """What decoding a batch of commands carries from step to step (one row per command)."""
+
+    text: torch.Tensor  # [n, tokens, H] encoded command
+    text_mask: torch.Tensor  # [n, tokens] bool, False on padding tokens
+    world: torch.Tensor  # [n, cells, H] projected features of the initial state
+    h: torch.Tensor  # [n, H] decoder LSTM state
+    c: torch.Tensor  # [n, H] decoder LSTM cell
+
+    def select(self, rows: torch.Tensor) -> "DecoderState":
+        return DecoderState(*(getattr(self, f.name).index_select(0, rows) for f in dataclasses.fields(self)))
 
 
 class _Additive(nn.Module):
@@ -121,20 +148,21 @@ class Seq2Seq(nn.Module):
         H = self.cfg.hidden
         return out[..., :H] + out[..., H:], mask
 
-    def _start(self, commands, first_states):
+    def _start(self, commands, first_states) -> DecoderState:
         text, mask = self.encode_commands(commands)
         world = self.visual_proj(self.visual(*sparse_states(first_states, self.device)))
         n, H = len(commands), self.cfg.hidden
-        return {"text": text, "mask": mask, "world": world, "h": text.new_zeros(n, H), "c": text.new_zeros(n, H)}
+        return DecoderState(text, mask, world, text.new_zeros(n, H), text.new_zeros(n, H))
 
-    def _decode(self, st, prev):
-        text_ctx, _ = self.text_att(st["h"], st["text"], st["mask"])
-        world_ctx, world_w = self.world_att(torch.cat([st["h"], text_ctx], -1), st["world"])
+    def _decode(self, st: DecoderState, prev: torch.Tensor) -> torch.Tensor:
+        """Action logits of one step after action `prev`; advances `st` in place."""
+        text_ctx, _ = self.text_att(st.h, st.text, st.text_mask)
+        world_ctx, _ = self.world_att(torch.cat([st.h, text_ctx], -1), st.world)
         x = torch.cat([self.drop(self.action_embed(prev)), text_ctx, world_ctx], -1)
-        st["h"], st["c"] = self.decoder(x, (st["h"], st["c"]))
-        return self.out(self.drop(torch.cat([st["h"], text_ctx, world_ctx], -1))), world_w
+        st.h, st.c = self.decoder(x, (st.h, st.c))
+        return self.out(self.drop(torch.cat([st.h, text_ctx, world_ctx], -1)))
 
-    def make_batch(self, store, ids) -> dict:
+    def make_batch(self, store, ids) -> Seq2SeqBatch:
         """Teacher-forcing inputs from an EpisodeStore: commands, initial states, targets."""
         ids = np.asarray(ids)
         first = store.initial_states(ids)
@@ -143,19 +171,19 @@ class Seq2Seq(nn.Module):
         tgt = torch.full((len(ids), T), -1, dtype=torch.long)
         for b, t in enumerate(targets):
             tgt[b, : len(t)] = torch.from_numpy(t)
-        return {"commands": [store.commands[i] for i in ids], "first": first, "targets": tgt}
+        return Seq2SeqBatch([store.commands[i] for i in ids], first, tgt)
 
-    def forward(self, batch: dict) -> TeacherOutput:
+    def forward(self, batch: Seq2SeqBatch) -> TeacherOutput:
         """Teacher forcing: the call DistributedDataParallel wraps."""
         return self.teacher_forcing(batch)
 
-    def teacher_forcing(self, batch: dict) -> TeacherOutput:
-        st = self._start(batch["commands"], batch["first"])
-        targets = batch["targets"].to(self.device)
+    def teacher_forcing(self, batch: Seq2SeqBatch) -> TeacherOutput:
+        st = self._start(batch.commands, batch.first_states)
+        targets = batch.targets.to(self.device)
         prev = torch.full((len(targets),), self.sos, dtype=torch.long, device=self.device)
         logits = []
         for t in range(targets.shape[1]):
-            out, _ = self._decode(st, prev)
+            out = self._decode(st, prev)
             logits.append(out)
             prev = targets[:, t].clamp(min=0)
         logits_t = torch.stack(logits, 1)
@@ -169,7 +197,8 @@ class Seq2Seq(nn.Module):
 
 
 class Seq2SeqRollout:
-    """Closed-loop decoding: the first observation is encoded, later ones are ignored."""
+    """Closed-loop greedy decoding: the first observation is encoded, later ones are
+    ignored; each step feeds back the step before's argmax action."""
 
     def __init__(self, model: Seq2Seq, commands: list[str]):
         self.model, self.commands, self.state = model, commands, None
@@ -179,15 +208,13 @@ class Seq2SeqRollout:
     def step(self, observations: np.ndarray):
         if self.state is None:
             self.state = self.model._start(self.commands, observations)
-        logits, _ = self.model._decode(self.state, self.prev)
+        logits = self.model._decode(self.state, self.prev)
+        self.prev = logits.argmax(-1)
         return logits, None
-
-    def advance(self, actions: torch.Tensor) -> None:
-        self.prev = actions.clone()
 
     def keep(self, rows: torch.Tensor) -> None:
         self.commands = [self.commands[i] for i in rows.tolist()]
         self.words = [self.words[i] for i in rows.tolist()]
         rows = rows.to(self.prev.device)
-        self.state = {k: v.index_select(0, rows) for k, v in self.state.items()}
+        self.state = self.state.select(rows)
         self.prev = self.prev.index_select(0, rows)

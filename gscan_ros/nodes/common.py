@@ -1,12 +1,14 @@
-"""What the gscan_ros nodes share: topic names, QoS profiles, the status channel, `run()`.
+"""What the gscan_ros nodes share: topic names and QoS from the interface table, the status channel, `run()`.
 
 Topic names are relative (DESIGN.md "ROS interface"), so a whole stack can be pushed
-into a namespace with `--ros-args -r __ns:=/robot1`.
+into a namespace with `--ros-args -r __ns:=/robot1`. Names, types and offered QoS come
+from `gscan_ros.interface` (plain data, shared with the bag code); this module turns
+them into rclpy QoSProfiles.
 """
 from __future__ import annotations
 
 import functools
-import re
+import logging
 import sys
 import time
 import traceback
@@ -14,88 +16,102 @@ from collections.abc import Callable
 from typing import TypeVar
 
 import rclpy
-from rcl_interfaces.msg import ParameterDescriptor
+from rcl_interfaces.msg import IntegerRange, ParameterDescriptor, SetParametersResult
+from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
+from gscan_ros import interface
 from gscan_ros.errors import GscanError
+from gscan_ros.interface import Endpoint, Qos, attention_topic, topic_token  # noqa: F401 - re-exported
 
-COMMAND = "command"
-COMMAND_GRAPH = "command_graph"
-STATUS = "status"
-OBSERVATION = "observation"
-SITUATION = "situation"  # gSCAN situation JSON of the current world state (for recorders)
-WORLD_RESET = "world_reset"  # std_msgs/Header stamped with the time the world was (re)loaded
-WORLD_IMAGE = "world_image"
-ACTION = "action"
-ATTENTION_PREFIX = "attention"
-SIZE_ORDERING = f"{ATTENTION_PREFIX}/size_ordering"  # (-att_small + att_big) / 2, commands with a size word
-RESET_WORLD = "reset_world"
+COMMAND = interface.COMMAND.name
+COMMAND_GRAPH = interface.COMMAND_GRAPH.name
+STATUS = interface.STATUS.name
+OBSERVATION = interface.OBSERVATION.name
+SITUATION = interface.SITUATION.name  # gSCAN situation JSON of the current world state (for recorders)
+WORLD_RESET = interface.WORLD_RESET.name  # std_msgs/Header stamped with the time the world was (re)loaded
+WORLD_IMAGE = interface.WORLD_IMAGE.name
+ACTION = interface.ACTION.name
+ATTENTION_PREFIX = interface.ATTENTION.name
+SIZE_ORDERING = interface.SIZE_ORDERING.name  # (-att_small + att_big) / 2, commands with a size word
+RESET_WORLD = interface.RESET_WORLD.name
 
-# World-state-like topics: a late subscriber still gets the current state (DESIGN.md).
-LATCHED_QOS = QoSProfile(
-    history=HistoryPolicy.KEEP_LAST,
-    depth=1,
-    reliability=ReliabilityPolicy.RELIABLE,
-    durability=DurabilityPolicy.TRANSIENT_LOCAL,
-)
-# The world simulator's state streams (observation, situation, world_image): latched for
-# late joiners like LATCHED_QOS, but the writer keeps the last 64 states, because a
-# reliable writer that keeps only the newest drops a state a busy recorder has not yet
-# acknowledged when the policy steps fast (~5 ms a step), and the recorder then cannot
-# pair the episode's actions. A depth-1 reader (the policy) still sees only the newest.
-LATCHED_STATE_QOS = QoSProfile(
-    history=HistoryPolicy.KEEP_LAST,
-    depth=64,
-    reliability=ReliabilityPolicy.RELIABLE,
-    durability=DurabilityPolicy.TRANSIENT_LOCAL,
-)
+_RELIABILITY = {interface.RELIABLE: ReliabilityPolicy.RELIABLE, interface.BEST_EFFORT: ReliabilityPolicy.BEST_EFFORT}
+_DURABILITY = {
+    interface.VOLATILE: DurabilityPolicy.VOLATILE,
+    interface.TRANSIENT_LOCAL: DurabilityPolicy.TRANSIENT_LOCAL,
+}
+
+
+def qos_profile(spec: Endpoint | Qos, *, depth: int | None = None) -> QoSProfile:
+    """The rclpy profile of a table entry (what its publisher offers); `depth` sets a
+    reader's own queue with the writer's reliability and durability, so they match."""
+    qos = spec.qos if isinstance(spec, Endpoint) else spec
+    if qos is None:
+        raise ValueError(f"{spec.name} is a service: it has no topic QoS")
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=qos.depth if depth is None else depth,
+        reliability=_RELIABILITY[qos.reliability],
+        durability=_DURABILITY[qos.durability],
+    )
+
+
+# Named profiles (tests and tools subscribe with these).
+LATCHED_QOS = qos_profile(interface.LATCHED)
+LATCHED_STATE_QOS = qos_profile(interface.LATCHED_STATE)
 # A reader of latched topics that must see every state, not just the newest (recorders,
 # test probes): it gets the stored sample on joining and queues later ones while busy.
-LATCHED_LOG_QOS = QoSProfile(
-    history=HistoryPolicy.KEEP_LAST,
-    depth=1000,
-    reliability=ReliabilityPolicy.RELIABLE,
-    durability=DurabilityPolicy.TRANSIENT_LOCAL,
-)
-# Event streams (command, action, status). The queue is deep enough that a burst of
-# 1000 rejected commands is reported in full, and bounded so a flood cannot grow memory.
-EVENT_QOS = QoSProfile(
-    history=HistoryPolicy.KEEP_LAST,
-    depth=1000,
-    reliability=ReliabilityPolicy.RELIABLE,
-    durability=DurabilityPolicy.VOLATILE,
-)
-# Viewer-only streams (attention maps): losing one frame is harmless.
-VIEWER_QOS = QoSProfile(
-    history=HistoryPolicy.KEEP_LAST,
-    depth=5,
-    reliability=ReliabilityPolicy.RELIABLE,
-    durability=DurabilityPolicy.VOLATILE,
-)
+LATCHED_LOG_QOS = qos_profile(interface.LATCHED, depth=interface.LOG_DEPTH)
+EVENT_QOS = qos_profile(interface.EVENTS)
+VIEWER_QOS = qos_profile(interface.VIEWER)
+# A viewer that keeps every frame it gets while busy (the demo's GIFs), best effort as offered.
+VIEWER_LOG_QOS = qos_profile(interface.VIEWER, depth=interface.LOG_DEPTH)
 
 ECHO_CHARS = 60  # how much of a rejected input a status line quotes
 STATUS_CHARS = 300  # longest status line
 WARNING_INTERVAL_S = 1.0  # at most one rejection warning per interval in the log
 
 
-def describe(text: str, *, read_only: bool = True) -> ParameterDescriptor:
-    """Parameter descriptor with a description (shown by `ros2 param describe`)."""
-    return ParameterDescriptor(description=text, read_only=read_only)
+def describe(text: str, *, read_only: bool = False, int_range: tuple[int, int] | None = None,
+             constraints: str = "") -> ParameterDescriptor:
+    """Parameter descriptor with a description and, for integers, the allowed range
+    (`ros2 param describe` shows them; rclpy refuses a value outside the range)."""
+    descriptor = ParameterDescriptor(description=text, read_only=read_only, additional_constraints=constraints)
+    if int_range is not None:
+        descriptor.integer_range = [IntegerRange(from_value=int_range[0], to_value=int_range[1], step=1)]
+    return descriptor
+
+
+def validated(check: Callable[[dict[str, object]], None]) -> Callable[[list], SetParametersResult]:
+    """An on-set-parameters callback from `check({name: new value})`: a GscanError (or
+    ValueError) it raises rejects the whole change, its message being the reason
+    `ros2 param set` prints. Validate there; apply in a post-set callback. Any other
+    exception is a bug: it is logged with its traceback and the change is refused (an
+    exception escaping the parameter service would end the node)."""
+
+    def callback(parameters: list) -> SetParametersResult:
+        try:
+            check({p.name: p.value for p in parameters})
+        except (GscanError, ValueError) as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        except Exception as exc:  # noqa: BLE001 - a node must survive its own bugs
+            node = getattr(check, "__self__", None)  # the node whose method `check` is
+            logger = node.get_logger() if isinstance(node, Node) else logging.getLogger("gscan_ros.nodes")
+            logger.error(traceback.format_exc())
+            return SetParametersResult(successful=False, reason=f"internal error: {type(exc).__name__}: {exc}")
+        return SetParametersResult(successful=True)
+
+    return callback
 
 
 def quote(value: object) -> str:
     """repr() of a rejected input, shortened so a 10 kB command gives a one-line status."""
     text = repr(value)
     return text if len(text) <= ECHO_CHARS else f"{text[:ECHO_CHARS]}... ({len(str(value))} chars)"
-
-
-def topic_token(word: str) -> str:
-    """A valid ROS name token for a graph word: "while spinning" -> "while_spinning", "<root>" -> "root"."""
-    token = re.sub(r"[^0-9A-Za-z]+", "_", word).strip("_")
-    return token if token and not token[0].isdigit() else f"w_{token}"
 
 
 class StatusReporter:
@@ -110,7 +126,7 @@ class StatusReporter:
 
     def __init__(self, node: Node) -> None:
         self._node = node
-        self._pub = node.create_publisher(String, STATUS, EVENT_QOS)
+        self._pub = node.create_publisher(String, STATUS, qos_profile(interface.STATUS))
         self._next_warning = 0.0
         self._unlogged = 0
 
@@ -204,7 +220,7 @@ def run(node_factory: Callable[[], NodeT], args: list[str] | None = None) -> int
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except GscanError as exc:
+    except (GscanError, ParameterException) as exc:  # a bad parameter value: one line, like the CLI
         print(f"error: {exc}", file=sys.stderr)
         return 1
     finally:

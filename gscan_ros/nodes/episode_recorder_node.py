@@ -4,21 +4,21 @@ The bag is the dataset format (rosbag2 layout, MCAP, DESIGN.md "Bags"), so a rec
 run can be replayed, evaluated or trained on like a generated dataset. Messages are
 buffered with their DDS source timestamps (actions with their publisher's sequence
 number); `episode_log` cuts them into lock-step episodes: complete at the episode's own
-`<eos>`, aborted at a `world_reset`. Each is written and flushed to disk at once, so a
-killed recorder leaves a bag that is readable up to its last written episode.
+`<eos>`, aborted at a `world_reset`. Each goes to the data layer's BagWriter
+(`write_recorded_episode`, the writer of generated datasets too, so the metadata agree)
+and is flushed to disk at once: a killed recorder leaves a bag that is readable up to
+its last written episode. All four parameters can be changed while recording.
 """
 from __future__ import annotations
 
-import json
 import time
 
 from rclpy.node import Node
 from sensor_msgs.msg import Image
 from std_msgs.msg import Header, String, UInt8MultiArray
 
-from gscan_ros.data import bag_schema as bag_topics
-from gscan_ros.data.bag import OUTCOME_ABORTED, OUTCOME_COMPLETE, BagWriter, episode_header
-from gscan_ros.data.episode import Episode
+from gscan_ros import interface
+from gscan_ros.data.bag import BagWriter
 from gscan_ros.data.episode_log import (
     ABORTED,
     EpisodeLog,
@@ -31,8 +31,6 @@ from gscan_ros.errors import GscanError
 from gscan_ros.nodes.common import (
     ACTION,
     COMMAND_GRAPH,
-    EVENT_QOS,
-    LATCHED_LOG_QOS,
     OBSERVATION,
     SITUATION,
     WORLD_IMAGE,
@@ -40,44 +38,52 @@ from gscan_ros.nodes.common import (
     StatusReporter,
     describe,
     guarded,
+    qos_profile,
     quote,
     run,
+    validated,
 )
-from gscan_ros.world.types import Action, Situation
-from msg_adapters import action_to_msg, msg_to_action, msg_to_graph, msg_to_reset
+from msg_adapters import msg_to_action, msg_to_graph, msg_to_reset, msg_to_situation
 
-LIVE_SPLIT = "live"
 READY_LOG = "world state received: recording episodes"
+
+
+def _log_qos(endpoint):
+    """Every sample of a topic, also the stored ones of a latched topic, queued while busy."""
+    return qos_profile(endpoint, depth=interface.LOG_DEPTH)
 
 
 class EpisodeRecorderNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__("episode_recorder_node", **kwargs)
-        bag_dir = self.declare_parameter(
-            "bag_dir", "", describe("output bag directory; empty: gscan_episodes_<date>_<time> here")
-        ).value
-        include_images = self.declare_parameter("include_images", False, describe("also record world_image")).value
-        overwrite = self.declare_parameter("overwrite", False, describe("replace an existing bag at bag_dir")).value
-        capacity = self.declare_parameter(
-            "buffer_messages",
-            2000,
-            describe("messages kept per topic while an episode runs (bounds memory; an rgb8 world_image is ~170 kB)"),
-        ).value
+        self.declare_parameter(
+            "bag_dir", "", describe("output bag directory; empty: gscan_episodes_<date>_<time> here (a change closes "
+                                    "the bag and records the next episodes into a new one there)")
+        )
+        self.declare_parameter("include_images", False, describe("also record world_image"))
+        self.declare_parameter("overwrite", False, describe("replace an existing bag at bag_dir (read when a bag "
+                                                            "is opened)"))
+        self.declare_parameter(
+            "buffer_messages", 2000,
+            describe("messages kept per topic while an episode runs (bounds memory; an rgb8 world_image is ~170 kB)",
+                     int_range=(2, 1_000_000)),
+        )
         self.status = StatusReporter(self)
-        self._writer = BagWriter(
-            bag_dir or time.strftime("gscan_episodes_%Y%m%d_%H%M%S"), include_images=include_images, overwrite=overwrite
-        ).open()
-        self.episodes = 0
-        self._log = EpisodeLog(capacity, images=include_images)
+        self._writer = self._open_bag({})
+        self._next_writer: BagWriter | None = None  # opened by a bag_dir change, taken after the set
+        include_images = self.get_parameter("include_images").value
+        self._log = EpisodeLog(self.get_parameter("buffer_messages").value, images=include_images)
         self._pending_eos = None  # an <eos> whose episode waits for the world's last replies
         # Latched topics first: their stored samples arrive as soon as we match.
-        self.create_subscription(Header, WORLD_RESET, self.on_world_reset, LATCHED_LOG_QOS)
-        self.create_subscription(String, SITUATION, self.on_situation, LATCHED_LOG_QOS)
-        self.create_subscription(UInt8MultiArray, OBSERVATION, self.on_observation, LATCHED_LOG_QOS)
-        self.create_subscription(String, COMMAND_GRAPH, self.on_graph, LATCHED_LOG_QOS)
-        if self._log.images is not None:
-            self.create_subscription(Image, WORLD_IMAGE, self.on_image, LATCHED_LOG_QOS)
-        self.create_subscription(String, ACTION, self.on_action, EVENT_QOS)
+        self.create_subscription(Header, WORLD_RESET, self.on_world_reset, _log_qos(interface.WORLD_RESET))
+        self.create_subscription(String, SITUATION, self.on_situation, _log_qos(interface.SITUATION))
+        self.create_subscription(UInt8MultiArray, OBSERVATION, self.on_observation, _log_qos(interface.OBSERVATION))
+        self.create_subscription(String, COMMAND_GRAPH, self.on_graph, _log_qos(interface.COMMAND_GRAPH))
+        self._image_sub = None
+        self._subscribe_images(include_images)
+        self.create_subscription(String, ACTION, self.on_action, _log_qos(interface.ACTION))
+        self.add_on_set_parameters_callback(validated(self._check_parameters))
+        self.add_post_set_parameters_callback(self._apply_parameters)
         self.get_logger().info(f"recording episodes to {self._writer.bag_dir}")
 
     @property
@@ -85,10 +91,51 @@ class EpisodeRecorderNode(Node):
         return self._writer.bag_dir
 
     @property
+    def episodes(self) -> int:
+        """Episodes written to the current bag."""
+        return self._writer.episodes_written
+
+    @property
     def ready(self) -> bool:
         """True once the world state has arrived: episodes started from now on are recorded."""
         return bool(self._log.situations) and bool(self._log.observations)
 
+    # -- parameters --------------------------------------------------------------------
+    def _open_bag(self, changes: dict) -> BagWriter:
+        bag_dir = changes.get("bag_dir", self.get_parameter("bag_dir").value)
+        overwrite = changes.get("overwrite", self.get_parameter("overwrite").value)
+        return BagWriter(bag_dir or time.strftime("gscan_episodes_%Y%m%d_%H%M%S"), overwrite=overwrite).open()
+
+    def _check_parameters(self, changes: dict) -> None:
+        """A new bag_dir is opened here, so a directory that cannot take a bag is refused with the reason."""
+        self._next_writer = None
+        if "bag_dir" in changes:
+            self._next_writer = self._open_bag(changes)
+
+    @guarded
+    def _apply_parameters(self, parameters: list) -> None:
+        names = {p.name for p in parameters}
+        if self._next_writer is not None:
+            old, self._writer, self._next_writer = self._writer, self._next_writer, None
+            old.close()
+            self.status.info(f"closed {old.bag_dir} ({old.episodes_written} episodes); recording to "
+                             f"{self._writer.bag_dir}")
+        if "buffer_messages" in names:
+            self._log.resize(self.get_parameter("buffer_messages").value)
+        if "include_images" in names:
+            self._subscribe_images(self.get_parameter("include_images").value)
+
+    def _subscribe_images(self, on: bool) -> None:
+        """Record world_image from the next episode on (on), or stop (off)."""
+        self._log.record_images(on)
+        if on and self._image_sub is None:
+            self._image_sub = self.create_subscription(Image, WORLD_IMAGE, self.on_image,
+                                                       _log_qos(interface.WORLD_IMAGE))
+        elif not on and self._image_sub is not None:
+            self.destroy_subscription(self._image_sub)
+            self._image_sub = None
+
+    # -- topics ------------------------------------------------------------------------
     @guarded
     def on_situation(self, msg: String, info: dict) -> None:
         self._keep(self._log.situations, msg, info)
@@ -104,7 +151,8 @@ class EpisodeRecorderNode(Node):
 
     @guarded
     def on_image(self, msg: Image, info: dict) -> None:
-        self._keep(self._log.images, msg, info)
+        if self._log.images is not None:
+            self._keep(self._log.images, msg, info)
 
     def _keep(self, buffer: StampedBuffer, msg, info: dict) -> None:
         was_ready = self.ready
@@ -163,37 +211,14 @@ class EpisodeRecorderNode(Node):
             self._write(record)
 
     def _write(self, record: EpisodeRecord) -> None:
-        graph = msg_to_graph(record.graph.value)
-        meta = {"parser": graph.parser, "recorded_by": self.get_fully_qualified_name()}
-        if graph.typed is not None:  # the header's "command" is the canonical one the policy followed
-            meta["typed_command"] = graph.typed
-        if record.outcome == ABORTED:
-            meta["aborted_because"] = record.reason
-        episode = Episode(
-            command=graph.command,
-            situation=Situation.from_json(json.loads(record.situation.value.data)),
-            actions=record.actions,
-            split=LIVE_SPLIT,
-            meta=meta,
+        """Decode the episode's graph and situation and hand it to the bag writer (which flushes it)."""
+        episode_id = self._writer.write_recorded_episode(
+            record, msg_to_graph(record.graph.value), msg_to_situation(record.situation.value),
+            recorded_by=self.get_fully_qualified_name(),
         )
-        outcome = OUTCOME_ABORTED if record.outcome == ABORTED else OUTCOME_COMPLETE
-        header = json.dumps(episode_header(episode, self.episodes, outcome), separators=(",", ":"))
-        write = self._writer.write_message
-        write(bag_topics.COMMAND.name, String(data=header), record.start_ns)
-        write(bag_topics.COMMAND_GRAPH.name, record.graph.value, record.start_ns)
-        for step in record.steps:
-            write(bag_topics.OBSERVATION.name, step.observation.value, step.observation.t_ns)
-            if step.image is not None:
-                write(bag_topics.WORLD_IMAGE.name, step.image.value, step.image.t_ns)
-            if step.action is not None:
-                write(bag_topics.ACTION.name, action_to_msg(step.action.value), step.action.t_ns)
-        if record.outcome == ABORTED:  # the bag's episode delimiter, stamped when the reset ended it
-            write(bag_topics.ACTION.name, action_to_msg(Action.EOS), record.end_ns)
-        self._writer.flush()
-        self.episodes += 1
         aborted = f" as aborted ({record.reason})" if record.outcome == ABORTED else ""
         left_out = f"; left out {record.left_out} actions of another chain" if record.left_out else ""
-        self.status.info(f"recorded episode {self.episodes - 1}{aborted} ({len(record.actions)} actions{left_out})")
+        self.status.info(f"recorded episode {episode_id}{aborted} ({len(record.actions)} actions{left_out})")
 
     def destroy_node(self) -> None:
         self._writer.close()

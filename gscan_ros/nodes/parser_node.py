@@ -15,12 +15,13 @@ the typed text (`typed`) for the episode recorder.
 """
 from __future__ import annotations
 
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from std_msgs.msg import String
 
+from gscan_ros import interface
 from gscan_ros.errors import CommandError, GscanError
 from gscan_ros.language.canonical import canonicalize
+from gscan_ros.language.parser import Parser
 from gscan_ros.language.registry import get_parser
 from gscan_ros.language.synonyms import synonym_table
 from gscan_ros.language.tokens import command_text
@@ -29,13 +30,13 @@ from gscan_ros.model.policy import default_checkpoint_path
 from gscan_ros.nodes.common import (
     COMMAND,
     COMMAND_GRAPH,
-    EVENT_QOS,
-    LATCHED_QOS,
     StatusReporter,
     describe,
     guarded,
+    qos_profile,
     quote,
     run,
+    validated,
 )
 from msg_adapters import cdr_to_string_bytes, graph_to_msg
 
@@ -45,40 +46,58 @@ PARSERS = ("semantic", "constituency", "dependency")
 class ParserNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__("parser_node", **kwargs)
-        checkpoint = self.declare_parameter(
-            "checkpoint",
-            "",
-            describe("policy checkpoint whose parser and word lexicon to use; empty: the shipped model"),
-        ).value
-        parser = self.declare_parameter(
-            "parser",
-            "",
-            ParameterDescriptor(
-                description="parse type; empty: the checkpoint's (the policy rejects graphs of another parser)",
-                additional_constraints=f"empty or one of: {', '.join(PARSERS)}",
-                read_only=True,
-            ),
-        ).value
-        self._max_chars = self.declare_parameter(
-            "max_command_chars", 1000, describe("longer commands are rejected unparsed", read_only=False)
+        self.declare_parameter(
+            "checkpoint", "", describe("policy checkpoint whose parser and word lexicon to use; empty: the shipped "
+                                       "model (a change loads it; a bad one is refused)")
+        )
+        self.declare_parameter(
+            "parser", "", describe("parse type; empty: the checkpoint's (the policy rejects graphs of another parser)",
+                                   constraints=f"empty or one of: {', '.join(PARSERS)}")
+        )
+        self.declare_parameter(
+            "max_command_chars", 1000, describe("longer commands are rejected unparsed", int_range=(1, 1_000_000))
         )
         self.status = StatusReporter(self)
-        ckpt = read_checkpoint(checkpoint or default_checkpoint_path())
-        parser = parser or str(ckpt["parser"])
-        self._parser = get_parser(parser, checkpoint_lexicon(ckpt))
+        self._parser, parser = self._load_parser({})  # a bad checkpoint is a start-up error (run() reports it)
+        self._next_parser: Parser | None = None  # validated by the on-set callback, installed after the set
         try:
             synonym_table()  # built now, so the first paraphrase is not a second late
         except GscanError as exc:
             self.get_logger().warning(f"WordNet synonyms unavailable, only gSCAN words are understood: {exc}")
-        self._graph_pub = self.create_publisher(String, COMMAND_GRAPH, LATCHED_QOS)
-        self.create_subscription(String, COMMAND, self.on_command, EVENT_QOS, raw=True)
+        self._graph_pub = self.create_publisher(String, COMMAND_GRAPH, qos_profile(interface.COMMAND_GRAPH))
+        self.create_subscription(String, COMMAND, self.on_command, qos_profile(interface.COMMAND), raw=True)
+        self.add_on_set_parameters_callback(validated(self._check_parameters))
+        self.add_post_set_parameters_callback(self._apply_parameters)
         self.get_logger().info(f"parsing commands with the {parser} parser")
+
+    def _load_parser(self, changes: dict) -> tuple[Parser, str]:
+        """The parser that `checkpoint` and `parser` (with `changes` applied) name, and its name."""
+        checkpoint = changes.get("checkpoint", self.get_parameter("checkpoint").value)
+        name = changes.get("parser", self.get_parameter("parser").value)
+        if name and name not in PARSERS:
+            raise CommandError(f"parser must be empty or one of {', '.join(PARSERS)}, got {name!r}")
+        ckpt = read_checkpoint(checkpoint or default_checkpoint_path())
+        name = name or str(ckpt["parser"])
+        return get_parser(name, checkpoint_lexicon(ckpt)), name
+
+    def _check_parameters(self, changes: dict) -> None:
+        """A new checkpoint or parser is loaded here, so a bad one is refused with the reason."""
+        self._next_parser = None
+        if "checkpoint" in changes or "parser" in changes:
+            self._next_parser, _ = self._load_parser(changes)
+
+    @guarded
+    def _apply_parameters(self, parameters: list) -> None:
+        if self._next_parser is not None:
+            self._parser, self._next_parser = self._next_parser, None
+            self.status.info(f"parsing commands with the {self._parser.name} parser "
+                             f"of {self.get_parameter('checkpoint').value or 'the shipped model'}")
 
     @guarded
     def on_command(self, cdr: bytes) -> None:
         """`cdr`: the serialized std_msgs/String (see the module docstring)."""
         data = cdr_to_string_bytes(cdr)
-        limit = self._max_chars.value
+        limit = self.get_parameter("max_command_chars").value
         try:
             text = command_text(data)
             if len(text) > limit:

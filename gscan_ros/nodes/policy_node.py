@@ -20,72 +20,69 @@ from __future__ import annotations
 import time
 
 import numpy as np
-from rcl_interfaces.msg import IntegerRange, ParameterDescriptor
 from rclpy.node import Node
 from sensor_msgs.msg import Image
 from std_msgs.msg import Header, String, UInt8MultiArray
 
+from gscan_ros import interface
 from gscan_ros.errors import GscanError
 from gscan_ros.language.graph import CommandGraph
 from gscan_ros.model.runtime import configure_torch
 from gscan_ros.nodes.common import (
     ACTION,
-    ATTENTION_PREFIX,
     COMMAND_GRAPH,
-    EVENT_QOS,
-    LATCHED_QOS,
     OBSERVATION,
     SIZE_ORDERING,
-    VIEWER_QOS,
     WORLD_RESET,
     StatusReporter,
+    attention_topic,
     describe,
     guarded,
+    qos_profile,
     run,
-    topic_token,
+    validated,
 )
 from gscan_ros.training.explain import size_ordering
 from gscan_ros.world.types import Action
 from msg_adapters import action_to_msg, attention_to_msg, msg_to_graph, msg_to_observation, msg_to_reset
 
+MODEL_PARAMETERS = ("checkpoint", "device")
+
 
 class PolicyNode(Node):
     def __init__(self, policy=None, **kwargs) -> None:
-        """`policy`: an already loaded Policy (bringup, tests); default: load `checkpoint`."""
+        """`policy`: an already loaded Policy (tests); default: load `checkpoint`."""
         super().__init__("policy_node", **kwargs)
-        checkpoint = self.declare_parameter(
-            "checkpoint", "", describe("policy checkpoint (.pt); empty: the model shipped with gscan_ros")
-        ).value
-        self._max_steps = self.declare_parameter(
-            "max_steps",
-            120,
-            ParameterDescriptor(
-                description="actions per episode before <eos> is forced (read at each episode start)",
-                integer_range=[IntegerRange(from_value=1, to_value=100_000, step=1)],
-            ),
+        self.declare_parameter(
+            "checkpoint", "", describe("policy checkpoint (.pt); empty: the model shipped with gscan_ros (a change "
+                                       "loads it, for the next command; a bad one is refused)")
         )
-        self._upsample = self.declare_parameter(
-            "attention_upsample", 10, describe("pixels per grid cell in attention/<word> images")
-        ).value
-        torch_threads = self.declare_parameter(
-            "torch_threads", 1, describe("CPU threads for the model; one is fastest for single-step inference")
-        ).value
-        device = self.declare_parameter(
-            "device", "cpu", describe("where the model runs: cpu, cuda, or auto (cuda if torch sees a GPU)")
-        ).value
+        self.declare_parameter(
+            "max_steps", 120, describe("actions per episode before <eos> is forced (read at each episode start)",
+                                       int_range=(1, 100_000))
+        )
+        self.declare_parameter(
+            "attention_upsample", 10, describe("pixels per grid cell in attention/<word> images", int_range=(1, 100))
+        )
+        self.declare_parameter(
+            "torch_threads", 1, describe("CPU threads for the model; one is fastest for single-step inference "
+                                         "(0: torch's default)", int_range=(0, 1024))
+        )
+        self.declare_parameter(
+            "device", "cpu", describe("where the model runs: cpu, cuda, or auto (cuda if torch sees a GPU); a change "
+                                      "reloads the model", constraints="one of: cpu, cuda, auto")
+        )
         self.status = StatusReporter(self)
-        configure_torch(torch_threads)
-        if policy is None:
-            from gscan_ros.model.policy import Policy
-
-            policy = Policy.from_checkpoint(checkpoint or None, device=device)
-        self._policy = policy
-        self._action_pub = self.create_publisher(String, ACTION, EVENT_QOS)
+        configure_torch(self.get_parameter("torch_threads").value)
+        self._policy = policy if policy is not None else self._load_policy({})
+        self._candidate = None  # loaded while a checkpoint/device change is checked
+        self._next_policy = None  # the accepted change's model, taken at the next command
+        self._action_pub = self.create_publisher(String, ACTION, qos_profile(interface.ACTION))
         self._attention_pubs: dict[str, object] = {}
         self._size_ordering_pub = None
         self._observation: np.ndarray | None = None
         self._observation_ns = 0  # DDS source timestamp of the newest observation
-        self._sent_ns = -1  # when the last action left this node (-1: never)
+        self._sent_ns = -1  # when the last action the world replies to (not <eos>) left this node (-1: never)
         self._graph: CommandGraph | None = None  # the running episode's graph, None when idle
         self._graph_ns = 0  # DDS source timestamp of the running episode's graph
         self._steps = 0
@@ -93,16 +90,51 @@ class PolicyNode(Node):
         self._started_ns = time.time_ns()
         self._reset_ns = 0  # the world's newest reset: anything published before it is past
         # The world publishes world_reset before the new state; subscribing to it first
-        # makes the executor take it first when both are waiting.
-        self.create_subscription(Header, WORLD_RESET, self.on_world_reset, LATCHED_QOS)
-        self.create_subscription(String, COMMAND_GRAPH, self.on_graph, LATCHED_QOS)
-        self.create_subscription(UInt8MultiArray, OBSERVATION, self.on_observation, LATCHED_QOS)
-        self.get_logger().info(f"policy ready (parser {policy.parser_name})")
+        # makes the executor take it first when both are waiting. Depth 1: only the newest matters.
+        def newest(endpoint):
+            return qos_profile(endpoint, depth=interface.LATEST_DEPTH)
+
+        self.create_subscription(Header, WORLD_RESET, self.on_world_reset, newest(interface.WORLD_RESET))
+        self.create_subscription(String, COMMAND_GRAPH, self.on_graph, newest(interface.COMMAND_GRAPH))
+        self.create_subscription(UInt8MultiArray, OBSERVATION, self.on_observation, newest(interface.OBSERVATION))
+        self.add_on_set_parameters_callback(validated(self._check_parameters))
+        self.add_post_set_parameters_callback(self._apply_parameters)
+        self.get_logger().info(f"policy ready (parser {self._policy.parser_name})")
 
     @property
     def policy(self):
         """The loaded Policy (its parser and lexicon are the ones graphs must come from)."""
         return self._policy
+
+    def _load_policy(self, changes: dict):
+        from gscan_ros.model.policy import Policy
+
+        checkpoint = changes.get("checkpoint", self.get_parameter("checkpoint").value)
+        device = changes.get("device", self.get_parameter("device").value)
+        return Policy.from_checkpoint(checkpoint or None, device=device)
+
+    def _check_parameters(self, changes: dict) -> None:
+        """A new checkpoint or device is loaded here, so a bad one is refused with the reason."""
+        self._candidate = None
+        if any(name in changes for name in MODEL_PARAMETERS):
+            self._candidate = self._load_policy(changes)
+
+    @guarded
+    def _apply_parameters(self, parameters: list) -> None:
+        """torch_threads now; a new model at the next command (the running episode keeps its own)."""
+        names = {p.name for p in parameters}
+        if self._candidate is not None:
+            self._next_policy, self._candidate = self._candidate, None
+        if "torch_threads" in names:
+            configure_torch(self.get_parameter("torch_threads").value)
+        if names & set(MODEL_PARAMETERS) and self._graph is None:
+            self._take_next_policy()
+
+    def _take_next_policy(self) -> None:
+        if self._next_policy is not None:
+            self._policy, self._next_policy = self._next_policy, None
+            self.status.info(f"loaded {self.get_parameter('checkpoint').value or 'the shipped model'} on "
+                             f"{self.get_parameter('device').value} (parser {self._policy.parser_name})")
 
     @guarded
     def on_world_reset(self, msg: Header, info: dict) -> None:
@@ -127,6 +159,7 @@ class PolicyNode(Node):
         if self._graph is not None:
             self.status.info(f"preempted {self._graph.command!r} after {self._steps} actions")
             self._graph = None
+        self._take_next_policy()
         try:
             graph = msg_to_graph(msg)
             self._policy.reset(graph)
@@ -134,7 +167,7 @@ class PolicyNode(Node):
             self.status.reject(f"rejected command graph: {exc}")
             return
         self._graph, self._graph_ns, self._steps = graph, info["source_timestamp"], 0
-        self._step_cap = self._max_steps.value
+        self._step_cap = self.get_parameter("max_steps").value
         self.status.info(f"following {graph.command!r}")
         if self._observation is not None and self._observation_ns > self._sent_ns:
             self._act()
@@ -159,7 +192,8 @@ class PolicyNode(Node):
         else:
             out = self._policy.step(self._observation)
             action, attention, ordering = out.action, out.attention, size_ordering(out.attention, out.antonyms)
-        self._sent_ns = time.time_ns()
+        if action is not Action.EOS:  # the world replies to it: act again only on a later state
+            self._sent_ns = time.time_ns()
         self._action_pub.publish(action_to_msg(action))
         self._publish_attention(attention)
         if ordering is not None:
@@ -171,18 +205,20 @@ class PolicyNode(Node):
             self._steps += 1
 
     def _publish_attention(self, attention: dict[str, np.ndarray]) -> None:
+        upsample = self.get_parameter("attention_upsample").value
         for word, weights in attention.items():
             pub = self._attention_pubs.get(word)
             if pub is None:
-                topic = f"{ATTENTION_PREFIX}/{topic_token(word)}"
-                pub = self._attention_pubs[word] = self.create_publisher(Image, topic, VIEWER_QOS)
-            pub.publish(attention_to_msg(weights, upsample=self._upsample))
+                pub = self._attention_pubs[word] = self.create_publisher(
+                    Image, attention_topic(word), qos_profile(interface.ATTENTION))
+            pub.publish(attention_to_msg(weights, upsample=upsample))
 
     def _publish_size_ordering(self, ordering: np.ndarray) -> None:
         """Shifted to start at 0, so the smallest object is darkest and the biggest lightest."""
         if self._size_ordering_pub is None:
-            self._size_ordering_pub = self.create_publisher(Image, SIZE_ORDERING, VIEWER_QOS)
-        self._size_ordering_pub.publish(attention_to_msg(ordering - ordering.min(), upsample=self._upsample))
+            self._size_ordering_pub = self.create_publisher(Image, SIZE_ORDERING, qos_profile(interface.SIZE_ORDERING))
+        upsample = self.get_parameter("attention_upsample").value
+        self._size_ordering_pub.publish(attention_to_msg(ordering - ordering.min(), upsample=upsample))
 
 
 def main(args: list[str] | None = None) -> int:

@@ -8,25 +8,25 @@ world: it is reported on `status` and gets no reply.
 
 Every (re)load first publishes `world_reset`, stamped with the load time, then the new
 state: that stamp is how the policy and the recorder learn that a running episode
-ended with its world (docs/ros.md "Resets").
+ended with its world (docs/ros.md "Resets"). A new situation source set while running
+(`ros2 param set`: dataset, split, index, seed, grid_size) is served from the next reset.
 """
 from __future__ import annotations
 
-import json
 import time
+from pathlib import Path
 
 from rclpy.node import Node
 from sensor_msgs.msg import Image
 from std_msgs.msg import Header, String, UInt8MultiArray
 from std_srvs.srv import Trigger
 
+from gscan_ros import interface
 from gscan_ros.data.episode import Episode
-from gscan_ros.errors import GscanError
+from gscan_ros.data.sources import episode_source
+from gscan_ros.errors import DatasetFormatError, GscanError
 from gscan_ros.nodes.common import (
     ACTION,
-    EVENT_QOS,
-    LATCHED_QOS,
-    LATCHED_STATE_QOS,
     OBSERVATION,
     RESET_WORLD,
     SITUATION,
@@ -36,52 +36,81 @@ from gscan_ros.nodes.common import (
     describe,
     guarded,
     guarded_trigger,
+    qos_profile,
     quote,
     run,
+    validated,
 )
-from gscan_ros.data.sources import episode_source
 from gscan_ros.world.types import GRID_SIZE, SUPPORTED_GRID_SIZES, Action
 from gscan_ros.world.world import World
-from msg_adapters import image_to_msg, msg_to_action, observation_to_msg, reset_to_msg
+from msg_adapters import image_to_msg, msg_to_action, observation_to_msg, reset_to_msg, situation_to_msg
+
+SOURCE_PARAMETERS = ("dataset", "split", "index", "seed", "grid_size")
+MAX_INDEX = 2**31 - 1
 
 
 class WorldSimulatorNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__("world_simulator_node", **kwargs)
-        dataset = self.declare_parameter(
-            "dataset", "", describe("dataset.txt (or its directory) or a bag directory; empty: sample situations")
-        ).value
-        split = self.declare_parameter("split", "test", describe("dataset split to serve")).value
-        index = self.declare_parameter(
-            "index", 0, describe("first example of the split; each reset takes the next")
-        ).value
-        seed = self.declare_parameter(
-            "seed", 0, describe("first sampling seed when no dataset; each reset adds 1")
-        ).value
-        grid_size = self.declare_parameter(
-            "grid_size", GRID_SIZE, describe(f"grid side of sampled worlds when no dataset "
-                                             f"({SUPPORTED_GRID_SIZES[0]}-{SUPPORTED_GRID_SIZES[-1]})")
-        ).value
-        self._images = self.declare_parameter(
-            "publish_images", True, describe("render and publish world_image after every step", read_only=False)
+        self.declare_parameter(
+            "dataset", "", describe("dataset.txt (or its directory) or a bag directory; empty: sample situations "
+                                    "(a change applies at the next reset_world)")
         )
+        self.declare_parameter("split", "test", describe("dataset split to serve (applies at the next reset_world)"))
+        self.declare_parameter(
+            "index", 0, describe("first example of the split; each reset takes the next (a change: the next "
+                                 "reset_world loads this one)", int_range=(0, MAX_INDEX))
+        )
+        self.declare_parameter(
+            "seed", 0, describe("first sampling seed when no dataset; each reset adds 1 (a change: the next "
+                                "reset_world samples this one)", int_range=(0, MAX_INDEX))
+        )
+        grids = (SUPPORTED_GRID_SIZES[0], SUPPORTED_GRID_SIZES[-1])
+        self.declare_parameter(
+            "grid_size", GRID_SIZE, describe("grid side of sampled worlds when no dataset (applies at the next "
+                                             "reset_world)", int_range=grids)
+        )
+        self.declare_parameter("publish_images", True, describe("render and publish world_image after every step"))
         self.status = StatusReporter(self)
-        self._source = episode_source(dataset, split, index, seed, grid_size)
-        self._reset_pub = self.create_publisher(Header, WORLD_RESET, LATCHED_QOS)
-        self._observation_pub = self.create_publisher(UInt8MultiArray, OBSERVATION, LATCHED_STATE_QOS)
-        self._situation_pub = self.create_publisher(String, SITUATION, LATCHED_STATE_QOS)
-        self._image_pub = self.create_publisher(Image, WORLD_IMAGE, LATCHED_STATE_QOS)
+        self._source = self._new_source()
+        self._reset_pub = self.create_publisher(Header, WORLD_RESET, qos_profile(interface.WORLD_RESET))
+        self._observation_pub = self.create_publisher(UInt8MultiArray, OBSERVATION,
+                                                      qos_profile(interface.OBSERVATION))
+        self._situation_pub = self.create_publisher(String, SITUATION, qos_profile(interface.SITUATION))
+        self._image_pub = self.create_publisher(Image, WORLD_IMAGE, qos_profile(interface.WORLD_IMAGE))
         self._world: World | None = None
         self._reset_ns = 0
         self._actions = 0  # actions applied since the last reset or <eos>
         self.load(self._source.next())  # a bad dataset is a start-up error (run() reports it)
-        self.create_subscription(String, ACTION, self.on_action, EVENT_QOS)
+        self.create_subscription(String, ACTION, self.on_action, qos_profile(interface.ACTION))
         self.create_service(Trigger, RESET_WORLD, self.on_reset_world)
+        self.add_on_set_parameters_callback(validated(self._check_parameters))
+        self.add_post_set_parameters_callback(self._apply_parameters)
 
     @property
     def world(self) -> World:
         """The simulated world (for in-process users: bringup, tests)."""
         return self._world
+
+    def _new_source(self):
+        """The situation sequence the parameters describe (its first item: `index`, or `seed`)."""
+        return episode_source(*(self.get_parameter(name).value for name in SOURCE_PARAMETERS))
+
+    def _check_parameters(self, changes: dict) -> None:
+        """Reject a dataset that is not there or an empty split before it is used."""
+        dataset = changes.get("dataset", self.get_parameter("dataset").value)
+        if "dataset" in changes and dataset and not Path(dataset).exists():
+            raise DatasetFormatError(f"dataset {dataset!r} does not exist")
+        if "split" in changes and dataset and not changes["split"]:
+            raise DatasetFormatError("split must not be empty when a dataset is served")
+
+    @guarded
+    def _apply_parameters(self, parameters: list) -> None:
+        """A new dataset, split, index, seed or grid size takes effect at the next reset."""
+        if any(p.name in SOURCE_PARAMETERS for p in parameters):
+            self._source = self._new_source()
+            self.status.info("the next reset_world loads from the new source: "
+                             + ", ".join(f"{p.name}={p.value!r}" for p in parameters if p.name in SOURCE_PARAMETERS))
 
     def load(self, episode: Episode) -> str:
         """Start over in `episode`'s situation and publish it; returns a one-line description."""
@@ -99,9 +128,9 @@ class WorldSimulatorNode(Node):
 
         Recorders pair an observation with the newest situation published before it.
         """
-        self._situation_pub.publish(String(data=json.dumps(self._world.snapshot().to_json())))
+        self._situation_pub.publish(situation_to_msg(self._world.snapshot()))
         self._observation_pub.publish(observation_to_msg(self._world.encode()))
-        if self._images.value:
+        if self.get_parameter("publish_images").value:
             self._image_pub.publish(image_to_msg(self._world.render()))
 
     @guarded

@@ -18,7 +18,9 @@ from tqdm import tqdm
 
 from gscan_ros.data.episode import Episode
 from gscan_ros.language.graph import CommandGraph
-from gscan_ros.model.compositional import Layout, ModuleTable, TeacherBatch
+from gscan_ros.model.compositional import ModuleTable
+from gscan_ros.model.layout import Layout
+from gscan_ros.model.teacher_forcing import TeacherBatch
 from gscan_ros.world.types import GRID_SIZE, NUM_CHANNELS, Action
 
 if TYPE_CHECKING:  # the bag layer imports rclpy's serializer; training must not
@@ -116,9 +118,9 @@ class EpisodeStore:
 
     def batch(self, ids: Sequence[int], table: ModuleTable, quantum: int = 8) -> TeacherBatch:
         """A TeacherBatch of episodes `ids`: rows sorted by length, packed time-major, the
-        number of rows computed per step rounded up to a multiple of `quantum` (fewer
-        re-slices of the per-row tensors vs. fewer padded steps: 1-8 measured alike on a
-        batch of 200, ~10% faster than 32)."""
+        number of rows computed per step rounded up to a multiple of `quantum`: fewer
+        re-slices of the per-row tensors vs. fewer padded steps (docs/results.md,
+        "Engine settings")."""
         ids = np.asarray(ids, dtype=np.int64)
         ids = ids[np.argsort(-self.lengths[ids], kind="stable")]
         lengths = self.lengths[ids]
@@ -143,7 +145,6 @@ class EpisodeStore:
             valid=torch.from_numpy(valid),
             lengths=torch.from_numpy(lengths.astype(np.float32)),
             active=[int(n) for n in active],
-            episode_ids=ids,
         )
 
 

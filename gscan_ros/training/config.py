@@ -13,6 +13,10 @@ from pathlib import Path
 import yaml
 
 from gscan_ros.errors import GscanError
+from gscan_ros.language.lexicon import LEXICONS
+from gscan_ros.language.registry import DEFAULT_PARSER
+from gscan_ros.model.checkpoint import KINDS
+from gscan_ros.training.batches import BATCHING
 
 
 class ConfigError(GscanError):
@@ -40,8 +44,8 @@ class TrainConfig:
     """'compositional' (Kuo et al.) or 'seq2seq' (the gSCAN baseline, GSCAN_SPEC §9)."""
     model: dict = field(default_factory=dict)
     """Overrides of the model config's fields (see ModelConfig / Seq2SeqConfig docstrings)."""
-    parser: str = "semantic"
-    """Command parser building the network: semantic | constituency | dependency."""
+    parser: str = DEFAULT_PARSER
+    """Command parser building the network: one of `language.BUILTIN_PARSERS` or a registered one."""
     lexicon: str = "wordnet"
     """'wordnet': share modules between WordNet-related words (big/small); 'none': no sharing."""
     batching: str = "mixed"
@@ -98,9 +102,9 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         checks = {
-            "model_kind": ("compositional", "seq2seq"),
-            "lexicon": ("wordnet", "none"),
-            "batching": ("mixed", "per_command"),
+            "model_kind": KINDS,
+            "lexicon": LEXICONS,
+            "batching": BATCHING,
             "lr_decay": ("none", "cosine", "linear"),
         }
         for key, allowed in checks.items():

@@ -104,7 +104,7 @@ def joined(device: str | torch.device = "cpu", backend: str | None = None) -> It
     finally:
         # A DistributedDataParallel wrapper sits in reference cycles and keeps the group
         # alive; left to interpreter exit, its gloo threads abort the process
-        # ("terminate called without an active exception", ~1 exit in 10 here).
+        # now and then ("terminate called without an active exception").
         gc.collect()
         dist.destroy_process_group()
 

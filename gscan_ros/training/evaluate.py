@@ -18,18 +18,14 @@ import torch
 from tqdm import tqdm
 
 from gscan_ros.data.episode import Episode
+from gscan_ros.data.splits import SPLIT_LETTERS
 from gscan_ros.errors import GscanError, InvalidActionError
 from gscan_ros.model.policy import Policy
 from gscan_ros.training.distributed import Ranks, shard_of
-from gscan_ros.world.types import ADVERBS, COLORS, TRANSITIVE_VERBS, Action
+from gscan_ros.world.types import ADVERBS, COLORS, SIZE_ADJECTIVES, TRANSITIVE_VERBS, Action
 from gscan_ros.world.world import World
 
 MAX_STEPS = 120
-SIZE_WORDS = ("big", "small")
-SPLIT_LETTERS = {
-    "test": "A", "visual_easier": "B", "visual": "C", "situational_1": "D", "situational_2": "E",
-    "contextual": "F", "adverb_1": "G", "adverb_2": "H", "target_lengths": "I",
-}
 
 
 def token_accuracy(predicted: Sequence, gold: Sequence) -> float:
@@ -104,7 +100,7 @@ def command_groups(episode: Episode) -> dict[str, str]:
     return {
         "verb": words[0],
         "adverb": adverb.replace(" ", "_"),
-        "size_word": next((w for w in words if w in SIZE_WORDS), "none"),
+        "size_word": next((w for w in words if w in SIZE_ADJECTIVES), "none"),
         "color_word": "yes" if any(w in COLORS for w in words) else "no",
         "heavy_target": "yes" if heavy else "no",
         "target_length": "<=8" if n <= 8 else "9-16" if n <= 16 else ">=17",
@@ -174,7 +170,6 @@ def _decode_batch(policy: Policy, episodes: Sequence[Episode], max_steps: int, r
     for _ in range(max_steps + 1):
         logits, maps = rollout.step(np.stack([worlds[i].encode() for i in live]))
         chosen = logits.argmax(-1)
-        rollout.advance(chosen)
         if record and maps is not None:
             maps = maps.cpu()
             for row, i in enumerate(live):

@@ -37,17 +37,11 @@ from typing import Callable
 
 import yaml
 
+from gscan_ros.data.splits import SPLIT_KINDS, TEST_SPLITS
 from gscan_ros.errors import GscanError
 from gscan_ros.training.config import read_yaml
 
 CLI = (sys.executable, "-m", "gscan_ros.cli")
-# Test splits of each kind of dataset (letters A-H; split I is `target_lengths`, and the
-# length data's random `test` holds the trained-on lengths, e.g. Table 2's row 15).
-EVAL_SPLITS = {
-    "compositional": ("test", "visual_easier", "visual", "situational_1", "situational_2", "contextual",
-                      "adverb_1", "adverb_2"),
-    "length": ("test", "target_lengths"),
-}
 # Config keys that may change without making a run stale: the budget and the machine.
 UNTRACKED_KEYS = ("max_updates", "max_minutes", "threads")
 # Keys the runner sets itself, never the plan's `defaults:` / `set:`.
@@ -213,10 +207,10 @@ def load_plan(path: str | Path, results: str | Path | None = None, data_root: st
             raise PlanError(f"{where}: {key}.paper must be one of {list(COLUMN_TITLES)}, got {paper!r}")
         title = _text(entry.get("title", COLUMN_TITLES.get(column, column)), where, f"{key}.title")
         kind = datasets[data].split_kind
-        splits = entry.get("splits", list(EVAL_SPLITS[kind]))
-        if not (isinstance(splits, list) and splits and all(s in EVAL_SPLITS[kind] for s in splits)):
+        splits = entry.get("splits", list(TEST_SPLITS[kind]))
+        if not (isinstance(splits, list) and splits and all(s in TEST_SPLITS[kind] for s in splits)):
             raise PlanError(f"{where}: {key}.splits must be a list of {kind} test splits "
-                            f"{list(EVAL_SPLITS[kind])}, got {splits!r}")
+                            f"{list(TEST_SPLITS[kind])}, got {splits!r}")
         overrides = defaults + _overrides(entry.get("set") or {}, where, f"{key}.set")
         parsed.append((name, column, title, paper, config, datasets[data], seeds, tuple(overrides), tuple(splits)))
     runs = _expand(parsed, where)
@@ -257,8 +251,8 @@ def _dataset(name, spec, where: str) -> DataRecipe:
             raise PlanError(f"{where}: {key}.{field_name} has the wrong type: {value!r}")
         values[field_name] = value
     kind = values.get("split_kind", "compositional")
-    if kind not in EVAL_SPLITS:
-        raise PlanError(f"{where}: {key}.split_kind must be one of {list(EVAL_SPLITS)}, got {kind!r}")
+    if kind not in SPLIT_KINDS:
+        raise PlanError(f"{where}: {key}.split_kind must be one of {list(SPLIT_KINDS)}, got {kind!r}")
     examples = values.pop("examples", "full")
     if examples != "full" and not (isinstance(examples, int) and examples > 0):
         raise PlanError(f"{where}: {key}.examples must be 'full' or a positive integer, got {examples!r}")

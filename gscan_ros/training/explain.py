@@ -23,12 +23,13 @@ import numpy as np
 import torch
 
 from gscan_ros.data.episode import Episode
+from gscan_ros.data.splits import SPLIT_LETTERS
 from gscan_ros.errors import GscanError, InvalidActionError
 from gscan_ros.language.graph import CommandGraph
 from gscan_ros.model.policy import Policy
-from gscan_ros.training.evaluate import MAX_STEPS, SIZE_WORDS, SPLIT_LETTERS
+from gscan_ros.training.evaluate import MAX_STEPS
 from gscan_ros.world import CommandFrame, World, resolve_target
-from gscan_ros.world.types import NOUNS, VERBS, Action, Situation, WorldObject
+from gscan_ros.world.types import NOUNS, SIZE_ADJECTIVES, VERBS, Action, Situation, WorldObject
 
 SNAPSHOT_PATTERN = re.compile(r"step_(\d+)\.pt")
 
@@ -41,7 +42,7 @@ def size_ordering(attention: Mapping[str, np.ndarray], antonyms: Mapping[str, np
     the same inputs (`StepOutput.antonyms`). None when the command has no size word or
     the model has no antonym head for it (big and small in separate modules).
     """
-    for word in SIZE_WORDS:
+    for word in SIZE_ADJECTIVES:
         if word in attention and word in antonyms:
             own, other = np.asarray(attention[word]), np.asarray(antonyms[word])
             big, small = (own, other) if word == "big" else (other, own)

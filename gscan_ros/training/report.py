@@ -12,7 +12,8 @@ def markdown_table(summary: dict, title: str = "") -> str:
     lines = [f"## {title}", ""] if title else []
     lines += ["| split | key | examples | exact match % | token accuracy % |", "|---|---|---:|---:|---:|"]
     for split, s in summary.items():
-        lines.append(f"| {s['letter'] or '-'} | {split} | {s['examples']} | {s['exact_match']:.2f} | {s['token_accuracy']:.2f} |")
+        lines.append(f"| {s['letter'] or '-'} | {split} | {s['examples']} | {s['exact_match']:.2f} "
+                     f"| {s['token_accuracy']:.2f} |")
     return "\n".join(lines) + "\n"
 
 

@@ -22,8 +22,16 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from gscan_ros.errors import GscanError
-from gscan_ros.training.paper_figures import (COLUMN_TITLES, K_SHOT_LABELS, TABLE1, TABLE1_ROWS, TABLE1_SOURCE,
-                                              TABLE2, TABLE2_ROWS, TABLE2_SOURCE)
+from gscan_ros.training.paper_figures import (
+    COLUMN_TITLES,
+    K_SHOT_LABELS,
+    TABLE1,
+    TABLE1_ROWS,
+    TABLE1_SOURCE,
+    TABLE2,
+    TABLE2_ROWS,
+    TABLE2_SOURCE,
+)
 
 RISING_POINTS = 1.0  # dev exact match gained over the last 20 % of updates that counts as "still rising"
 MUCH_POINTS = 10.0  # "≫": ahead by more than this many points
@@ -294,7 +302,8 @@ def _table2(t: Tables) -> list[str]:
         cells = [t.cell2(g, row) for g in groups]
         if row not in TABLE2_ROWS and all(c is None for c in cells):
             continue
-        out.append(f"| {_length_name(row)} | " + " | ".join(_cell_text(c, _paper2(g, row)) for c, g in zip(cells, groups)) + " |")
+        texts = (_cell_text(c, _paper2(g, row)) for c, g in zip(cells, groups))
+        out.append(f"| {_length_name(row)} | " + " | ".join(texts) + " |")
     return out + [""]
 
 

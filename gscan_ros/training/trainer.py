@@ -8,10 +8,9 @@ state: the file to ship or evaluate).
 from __future__ import annotations
 
 import ctypes
-import itertools
 import ctypes.util
+import itertools
 import json
-import logging
 import random
 import time
 from dataclasses import dataclass
@@ -25,18 +24,15 @@ from tqdm import tqdm
 
 from gscan_ros.errors import CheckpointError, DatasetFormatError, GscanError
 from gscan_ros.language.lexicon import Lexicon
-from gscan_ros.model.checkpoint import (build_model, checkpoint_dict, read_checkpoint, restore_model,
-                                        save_checkpoint)
+from gscan_ros.model.checkpoint import build_model, checkpoint_dict, read_checkpoint, restore_model, save_checkpoint
 from gscan_ros.model.compositional import ModuleTable
-from gscan_ros.model.runtime import configure_torch
 from gscan_ros.model.policy import Policy
-from gscan_ros.training.batches import EpisodeStore, EpochCursor, iterate_batches
+from gscan_ros.model.runtime import configure_torch
 from gscan_ros.training import distributed
+from gscan_ros.training.batches import EpisodeStore, EpochCursor, iterate_batches
 from gscan_ros.training.config import ConfigError, TrainConfig
 from gscan_ros.training.evaluate import evaluate_episodes, exact_match_by_group
-
-log = logging.getLogger(__name__)
-
+from gscan_ros.training.step import TrainingDiverged, TrainStep
 
 RUN_FILES = ("config.yaml", "metrics.jsonl", "learning_curve.png", "last.pt", "best.pt", "model.pt")
 
@@ -96,8 +92,8 @@ def keep_freed_memory(threshold: int = 1 << 30) -> bool:
     """Let glibc keep freed tensors in the heap instead of returning them to the OS.
 
     By default glibc serves every block above 32 MB with mmap and unmaps it on free, so
-    each ~80 MB feature tensor of a training batch is page-faulted in again on every
-    update; on a VM that costs about a fifth of an update. Raising the mmap and trim
+    each feature tensor of a training batch is page-faulted in again on every update
+    (its cost: docs/results.md, "Engine settings"). Raising the mmap and trim
     thresholds makes those blocks reusable. Returns False (and changes nothing) where
     the C library has no `mallopt` (non-glibc platforms).
     """
@@ -107,10 +103,6 @@ def keep_freed_memory(threshold: int = 1 << 30) -> bool:
     except (OSError, AttributeError):
         return False
     return bool(mallopt(_M_MMAP_THRESHOLD, threshold)) and bool(mallopt(_M_TRIM_THRESHOLD, threshold))
-
-
-def make_lexicon(name: str) -> Lexicon:
-    return Lexicon.from_wordnet() if name == "wordnet" else Lexicon.none()
 
 
 def module_table(parser, lexicon: Lexicon, extra_graphs=()) -> ModuleTable:
@@ -203,10 +195,6 @@ def load_dev(data: str, cfg: TrainConfig) -> list:
     return [source[i] for i in pick]
 
 
-class TrainingDiverged(GscanError):
-    """The loss became NaN or infinite."""
-
-
 def train(cfg: TrainConfig, data: str, out_dir: str | Path, resume: bool = False, progress: bool = True,
           overwrite: bool = False, on_validation: Callable[[dict], None] | None = None,
           device: str | torch.device = "cpu") -> dict:
@@ -223,160 +211,194 @@ def train(cfg: TrainConfig, data: str, out_dir: str | Path, resume: bool = False
     every rank returns rank 0's result. The batches, and so a run's result, do not depend
     on the number of ranks (up to float rounding); `resume` continues a run whatever
     number of ranks wrote it."""
+    files = RunFiles(Path(out_dir))
     with distributed.joined(device) as ranks:
-        return _train(cfg, data, RunFiles(Path(out_dir)), resume, progress, overwrite, on_validation, ranks)
+        ranks.from_main(lambda: files.check_writable(resume, overwrite))
+        run = Run(cfg, data, files, ranks, progress, on_validation)
+        if resume:
+            run.resume()
+        run.start(resumed=resume)
+        run.train_loop()
+        return ranks.from_main(run.finish)
 
 
-def _train(cfg: TrainConfig, data: str, files: RunFiles, resume: bool, progress: bool, overwrite: bool,
-           on_validation: Callable[[dict], None] | None, ranks: distributed.Ranks) -> dict:
-    main = ranks.is_main
-    ranks.from_main(lambda: files.check_writable(resume, overwrite))
-    configure_torch(cfg.threads)
-    keep_freed_memory()
-    seeds = seed_everything(cfg.seed)
-    lexicon = make_lexicon(cfg.lexicon)
-    from gscan_ros.language.registry import get_parser
+class Run:
+    """One training run, in the order it happens: `__init__` (seeds, data, model,
+    optimizer), `resume`, `start` (run files), `train_loop` (updates with periodic
+    `validate` and `checkpoint`), `finish` (model.pt and the end record)."""
 
-    parser = get_parser(cfg.parser, lexicon)
-    t0 = time.time()
-    if ranks.distributed:  # a bag's decode-once cache is built by one rank, then read by all
-        ranks.from_main(lambda: split_cache(data, cfg.train_split) and None)
-    store = load_train_store(data, cfg, parser, progress=progress and main)
-    if not len(store):
-        raise DatasetFormatError(f"dataset {data!r} has no {cfg.train_split!r} episodes")
-    dev_eps = load_dev(data, cfg) if main else []
-    model = new_model(cfg, parser, lexicon, store).to(ranks.device)
-    optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr, betas=(0.9, 0.999))
-    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, cfg.lr_factor)
-    step, cursor, best, elapsed_before = 0, EpochCursor(), -1.0, 0.0
-    if resume:
-        ckpt = ranks.from_main(lambda: _read_resume_checkpoint(files.last, cfg))
-        restore_model(ckpt, model)
-        optimizer.load_state_dict(ckpt["optimizer"])
-        step = int(ckpt["step"])
-        scheduler.last_epoch = step
-        for group in optimizer.param_groups:
-            group["lr"] = cfg.lr * cfg.lr_factor(step)
-        cursor = EpochCursor(**ckpt["cursor"])
-        best = float(ckpt["best_dev_exact_match"])
-        elapsed_before = float(ckpt.get("elapsed_s", 0.0))
-        _restore_rng(ckpt["rng"], ranks.device)
-    if not main:  # own dropout masks; the weights come from rank 0 (DDP broadcasts them)
-        torch.manual_seed(int(np.random.SeedSequence([cfg.seed, ranks.rank, step]).generate_state(1)[0]))
-    net = model
-    if ranks.distributed:
-        # Some parameters never get a gradient (att_out_b, cancelled by the softmax; att_state_*
-        # unless attention_state='add'). The model moves its batch itself (device_ids None).
-        net = torch.nn.parallel.DistributedDataParallel(model, find_unused_parameters=True)
-    if main:
-        files.create(resume)
-        files.config.write_text(yaml.safe_dump(cfg.to_dict(), sort_keys=False))
-        n_params = sum(p.numel() for p in model.parameters())
-        _append(files.metrics, {"event": "start", "step": step, "seeds": seeds, "train_examples": len(store),
-                                "dev_examples": len(dev_eps), "parameters": n_params, "resumed": resume,
-                                "world_size": ranks.world_size, "device": str(ranks.device),
-                                "data_load_s": round(time.time() - t0, 2), "config": cfg.to_dict()})
-    policy = Policy(model, cfg.parser, lexicon)
+    def __init__(self, cfg: TrainConfig, data: str, files: RunFiles, ranks: distributed.Ranks, progress: bool,
+                 on_validation: Callable[[dict], None] | None):
+        self.cfg, self.files, self.ranks, self.on_validation = cfg, files, ranks, on_validation
+        self.progress = progress and ranks.is_main
+        configure_torch(cfg.threads)
+        keep_freed_memory()
+        self.seeds = seed_everything(cfg.seed)
+        self.lexicon = Lexicon.named(cfg.lexicon)
+        from gscan_ros.language.registry import get_parser
 
-    def checkpoint(path: Path, metrics: dict, training_state: bool) -> None:
-        extra = {}
-        if training_state:
-            extra = {"train_config": cfg.to_dict(), "optimizer": _to_cpu(optimizer.state_dict()),
-                     "rng": _rng_state(ranks.device), "cursor": {"epoch": cursor.epoch, "batch": cursor.batch},
-                     "best_dev_exact_match": best, "elapsed_s": elapsed_before + time.time() - start}
-        save_checkpoint(path, checkpoint_dict(model, parser=cfg.parser, lexicon=lexicon, step=step,
-                                              metrics=metrics, **extra))
+        parser = get_parser(cfg.parser, self.lexicon)
+        self.setup_started = time.time()
+        if ranks.distributed:  # a bag's decode-once cache is built by one rank, then read by all
+            ranks.from_main(lambda: split_cache(data, cfg.train_split) and None)
+        self.store = load_train_store(data, cfg, parser, progress=self.progress)
+        if not len(self.store):
+            raise DatasetFormatError(f"dataset {data!r} has no {cfg.train_split!r} episodes")
+        self.dev_eps = load_dev(data, cfg) if ranks.is_main else []
+        self.model = new_model(cfg, parser, self.lexicon, self.store).to(ranks.device)
+        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=cfg.lr, betas=(0.9, 0.999))
+        self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, cfg.lr_factor)
+        self.step, self.cursor, self.best, self.elapsed_before = 0, EpochCursor(), -1.0, 0.0
+        self.last_metrics: dict = {}
 
-    def validate() -> dict:
-        nonlocal best
-        res = evaluate_episodes(policy, dev_eps, batch_size=cfg.eval_batch_size)
-        metrics = {"step": step, "dev_exact_match": res.exact_match, "dev_token_accuracy": res.token_accuracy,
-                   "dev_examples": len(dev_eps), "elapsed_s": round(elapsed_before + time.time() - start, 2),
-                   "lr": optimizer.param_groups[0]["lr"], "dev_by_group": exact_match_by_group(res.predictions)}
-        model.train()
-        if res.exact_match > best or not files.best.exists():
-            best = max(best, res.exact_match)
-            checkpoint(files.best, metrics, training_state=False)
-        _append(files.metrics, {"event": "validation", **metrics})
-        plot_learning_curve(files.metrics, files.curve)
-        if on_validation is not None:
-            on_validation(metrics)
+    def resume(self) -> None:
+        """Continue from last.pt: weights, optimizer, schedule, batch cursor, best score, RNGs."""
+        cfg = self.cfg
+        ckpt = self.ranks.from_main(lambda: _read_resume_checkpoint(self.files.last, cfg))
+        restore_model(ckpt, self.model)
+        self.optimizer.load_state_dict(ckpt["optimizer"])
+        self.step = int(ckpt["step"])
+        self.scheduler.last_epoch = self.step
+        for group in self.optimizer.param_groups:
+            group["lr"] = cfg.lr * cfg.lr_factor(self.step)
+        self.cursor = EpochCursor(**ckpt["cursor"])
+        self.best = float(ckpt["best_dev_exact_match"])
+        self.elapsed_before = float(ckpt.get("elapsed_s", 0.0))
+        _restore_rng(ckpt["rng"], self.ranks.device)
+
+    def start(self, resumed: bool) -> None:
+        """Make the update step (DDP joins here) and, on rank 0, the run files and the start record."""
+        ranks = self.ranks
+        if not ranks.is_main:  # own dropout masks; the weights come from rank 0 (DDP broadcasts them)
+            torch.manual_seed(int(np.random.SeedSequence([self.cfg.seed, ranks.rank, self.step]).generate_state(1)[0]))
+        self.train_step = TrainStep(self.model, self.optimizer, self.store, self.scheduler, self.cfg.grad_clip, ranks)
+        if ranks.is_main:
+            self.files.create(resumed)
+            self.files.config.write_text(yaml.safe_dump(self.cfg.to_dict(), sort_keys=False))
+            n_params = sum(p.numel() for p in self.model.parameters())
+            _append(self.files.metrics, {
+                "event": "start", "step": self.step, "seeds": self.seeds, "train_examples": len(self.store),
+                "dev_examples": len(self.dev_eps), "parameters": n_params, "resumed": resumed,
+                "world_size": ranks.world_size, "device": str(ranks.device),
+                "data_load_s": round(time.time() - self.setup_started, 2), "config": self.cfg.to_dict()})
+        self.policy = Policy(self.model, self.cfg.parser, self.lexicon)
+        self.started = time.time()
+
+    def elapsed(self) -> float:
+        """Training seconds, including those before a resume."""
+        return self.elapsed_before + time.time() - self.started
+
+    def train_loop(self) -> None:
+        """Update until max_updates, the time budget or the target dev exact match."""
+        cfg, ranks, main = self.cfg, self.ranks, self.ranks.is_main
+        window = _LossWindow()
+        bar = tqdm(total=cfg.max_updates, initial=self.step, desc="training", unit="upd", disable=not self.progress)
+        batches = iterate_batches(self.store, cfg.batch_size, cfg.batching, cfg.seed, self.cursor)
+        budget_s = cfg.max_minutes * 60.0
+        while self.step < cfg.max_updates:
+            cursor, ids = next(batches)
+            try:
+                loss = self.train_step(ids)
+            except TrainingDiverged as exc:
+                raise TrainingDiverged(f"{exc} at update {self.step + 1}; {self.files.last} holds the last good "
+                                       "state (try a lower lr or grad_clip)") from None
+            self.step, self.cursor = self.step + 1, cursor
+            bar.update(1)
+            window.add(loss, len(ids))
+            if self.step % cfg.log_every == 0:
+                line = self.log_train(window)
+                bar.set_postfix(loss=f"{line['loss']:.3f}", ex_s=f"{line['examples_per_s']:.0f}")
+                window = _LossWindow()
+            # Rank 0's clock and validations decide for every rank, so all stop at the same update.
+            out_of_time = bool(budget_s) and ranks.from_main(lambda: self.elapsed() >= budget_s)
+            reached = False
+            if self.step % cfg.validate_every == 0 or self.step == cfg.max_updates or out_of_time:
+                self.last_metrics = ranks.from_main(self.validate)
+                reached = self.reached_target(self.last_metrics["dev_exact_match"])
+            if main and (self.step % cfg.checkpoint_every == 0 or self.step == cfg.max_updates or out_of_time
+                         or reached):
+                self.checkpoint(self.files.last, self.last_metrics, training_state=True)
+            if main and cfg.snapshot_every and self.step % cfg.snapshot_every == 0:
+                self.checkpoint(self.files.snapshot(self.step), self.last_metrics, training_state=False)
+            if out_of_time or reached:
+                break
+        bar.close()
+
+    def log_train(self, window: "_LossWindow") -> dict:
+        """The `train` record of the updates since the last one (written by rank 0)."""
+        now = time.time()
+        line = {"event": "train", "step": self.step, "epoch": self.cursor.epoch, "loss": window.mean_loss(),
+                "examples_per_s": window.rate(now), "elapsed_s": self.elapsed_before + now - self.started,
+                "lr": self.optimizer.param_groups[0]["lr"]}
+        if self.ranks.is_main:
+            _append(self.files.metrics, line)
+        return line
+
+    def reached_target(self, dev_exact_match: float) -> bool:
+        return bool(self.cfg.target_dev_exact_match) and dev_exact_match >= self.cfg.target_dev_exact_match
+
+    def validate(self) -> dict:
+        """Closed-loop exact match on the dev subset; best.pt on a new best (rank 0 only)."""
+        res = evaluate_episodes(self.policy, self.dev_eps, batch_size=self.cfg.eval_batch_size)
+        metrics = {"step": self.step, "dev_exact_match": res.exact_match, "dev_token_accuracy": res.token_accuracy,
+                   "dev_examples": len(self.dev_eps), "elapsed_s": round(self.elapsed(), 2),
+                   "lr": self.optimizer.param_groups[0]["lr"], "dev_by_group": exact_match_by_group(res.predictions)}
+        if res.exact_match > self.best or not self.files.best.exists():
+            self.best = max(self.best, res.exact_match)
+            self.checkpoint(self.files.best, metrics, training_state=False)
+        _append(self.files.metrics, {"event": "validation", **metrics})
+        plot_learning_curve(self.files.metrics, self.files.curve)
+        if self.on_validation is not None:
+            self.on_validation(metrics)
         return metrics
 
-    def finish() -> dict:
-        nonlocal last_metrics
-        if not last_metrics or last_metrics.get("step") != step:
-            last_metrics = validate()
-            checkpoint(files.last, last_metrics, training_state=True)
-        best_ckpt = read_checkpoint(files.best)
-        save_checkpoint(files.model, {k: v for k, v in best_ckpt.items()})
-        reached = bool(cfg.target_dev_exact_match) and best >= cfg.target_dev_exact_match
-        _append(files.metrics, {"event": "end", "step": step, "best_dev_exact_match": best, "reached_target": reached,
-                                "elapsed_s": elapsed_before + time.time() - start})
-        return {"step": step, "best_dev_exact_match": best, "reached_target": reached, **last_metrics}
+    def checkpoint(self, path: Path, metrics: dict, training_state: bool) -> None:
+        """The weights; with `training_state`, all `resume` needs too."""
+        extra = {}
+        if training_state:
+            extra = {"train_config": self.cfg.to_dict(), "optimizer": _to_cpu(self.optimizer.state_dict()),
+                     "rng": _rng_state(self.ranks.device),
+                     "cursor": {"epoch": self.cursor.epoch, "batch": self.cursor.batch},
+                     "best_dev_exact_match": self.best, "elapsed_s": self.elapsed()}
+        save_checkpoint(path, checkpoint_dict(self.model, parser=self.cfg.parser, lexicon=self.lexicon,
+                                              step=self.step, metrics=metrics, **extra))
 
-    start = time.time()
-    model.train()
-    window = {"loss": 0.0, "examples": 0, "t": time.time(), "n": 0}
-    bar = tqdm(total=cfg.max_updates, initial=step, desc="training", unit="upd", disable=not (progress and main))
-    last_metrics: dict = {}
-    batches = iterate_batches(store, cfg.batch_size, cfg.batching, cfg.seed, cursor)
-    budget_s = cfg.max_minutes * 60.0
-    while step < cfg.max_updates:
-        cursor, ids = next(batches)
-        shard, weight = distributed.shard_batch(ids, store.lengths, ranks)
-        out = net(store.batch(shard, model.table, model.teacher_quantum) if cfg.model_kind == "compositional"
-                  else model.make_batch(store, shard))
-        loss = out.loss if weight == 1.0 else out.loss * weight
-        if ranks.distributed:  # the whole batch's loss (DDP's average), and whether any rank's is broken
-            stats = ranks.reduce_sum(torch.stack([loss.detach() / ranks.world_size, (~torch.isfinite(loss)).float()]))
-            batch_loss, finite = stats[0], not bool(stats[1])
-        else:
-            batch_loss, finite = loss.detach(), bool(torch.isfinite(loss))
-        if not finite:
-            raise TrainingDiverged(f"the loss became {float(batch_loss)} at update {step + 1}; "
-                                   f"{files.last} holds the last good state (try a lower lr or grad_clip)")
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        if cfg.grad_clip:
-            torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
-        optimizer.step()
-        scheduler.step()
-        step += 1
-        bar.update(1)
-        window["loss"] += float(batch_loss)
-        window["examples"] += len(ids)
-        window["n"] += 1
-        if step % cfg.log_every == 0:
-            now = time.time()
-            rate = window["examples"] / max(now - window["t"], 1e-9)
-            line = {"event": "train", "step": step, "epoch": cursor.epoch, "loss": window["loss"] / window["n"],
-                    "examples_per_s": rate, "elapsed_s": elapsed_before + now - start,
-                    "lr": optimizer.param_groups[0]["lr"]}
-            if main:
-                _append(files.metrics, line)
-            bar.set_postfix(loss=f"{line['loss']:.3f}", ex_s=f"{rate:.0f}")
-            window = {"loss": 0.0, "examples": 0, "t": now, "n": 0}
-        # Rank 0's clock and validations decide for every rank, so all stop at the same update.
-        out_of_time = bool(budget_s) and ranks.from_main(lambda: elapsed_before + time.time() - start >= budget_s)
-        reached = False
-        if step % cfg.validate_every == 0 or step == cfg.max_updates or out_of_time:
-            last_metrics = ranks.from_main(validate)
-            reached = bool(cfg.target_dev_exact_match) and last_metrics["dev_exact_match"] >= cfg.target_dev_exact_match
-        if main and (step % cfg.checkpoint_every == 0 or step == cfg.max_updates or out_of_time or reached):
-            checkpoint(files.last, last_metrics, training_state=True)
-        if main and cfg.snapshot_every and step % cfg.snapshot_every == 0:
-            checkpoint(files.snapshot(step), last_metrics, training_state=False)
-        if out_of_time or reached:
-            break
-    bar.close()
-    return ranks.from_main(finish)
+    def finish(self) -> dict:
+        """Validate the last update if not yet done, ship best.pt as model.pt, write the end record."""
+        if not self.last_metrics or self.last_metrics.get("step") != self.step:
+            self.last_metrics = self.validate()
+            self.checkpoint(self.files.last, self.last_metrics, training_state=True)
+        save_checkpoint(self.files.model, dict(read_checkpoint(self.files.best)))
+        reached = self.reached_target(self.best)
+        _append(self.files.metrics, {"event": "end", "step": self.step, "best_dev_exact_match": self.best,
+                                     "reached_target": reached, "elapsed_s": self.elapsed()})
+        return {"step": self.step, "best_dev_exact_match": self.best, "reached_target": reached,
+                **self.last_metrics}
+
+
+class _LossWindow:
+    """Loss and examples of the updates since the last `train` record."""
+
+    def __init__(self):
+        self.loss, self.examples, self.updates, self.since = 0.0, 0, 0, time.time()
+
+    def add(self, loss: float, examples: int) -> None:
+        self.loss += loss
+        self.examples += examples
+        self.updates += 1
+
+    def mean_loss(self) -> float:
+        return self.loss / self.updates
+
+    def rate(self, now: float) -> float:
+        return self.examples / max(now - self.since, 1e-9)
 
 
 def _read_resume_checkpoint(path: Path, cfg: TrainConfig) -> dict:
     ckpt = read_checkpoint(path)
     if ckpt.get("parser") != cfg.parser:
-        raise CheckpointError(f"--resume: checkpoint was trained with parser {ckpt.get('parser')!r}, config says {cfg.parser!r}")
+        raise CheckpointError(f"--resume: checkpoint was trained with parser {ckpt.get('parser')!r}, "
+                              f"config says {cfg.parser!r}")
     return ckpt
 
 

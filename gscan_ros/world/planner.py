@@ -48,7 +48,8 @@ def resolve_target(situation: Situation, command: CommandFrame | str | Sequence[
         raise SituationError(f"situation.placed_objects: no object matches {referent!r}")
     if len(candidates) > 1:
         cells = ", ".join(str(tuple(o.position)) for o in candidates)
-        raise SituationError(f"situation.placed_objects: {referent!r} is ambiguous ({len(candidates)} objects at {cells})")
+        raise SituationError(
+            f"situation.placed_objects: {referent!r} is ambiguous ({len(candidates)} objects at {cells})")
     return candidates[0]
 
 

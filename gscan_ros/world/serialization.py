@@ -116,7 +116,8 @@ def situation_from_json(d: Any) -> Situation:
         raise SituationError(f"{where}.grid_size: expected a positive integer, got {_describe(grid_size)}")
     direction = _field(d, "agent_direction", where)
     if isinstance(direction, bool) or direction not in (0, 1, 2, 3) or not isinstance(direction, int):
-        raise SituationError(f"{where}.agent_direction: expected an integer 0-3 (E, S, W, N), got {_describe(direction)}")
+        raise SituationError(
+            f"{where}.agent_direction: expected an integer 0-3 (E, S, W, N), got {_describe(direction)}")
 
     placed = _field(d, "placed_objects", where)
     if not isinstance(placed, dict):

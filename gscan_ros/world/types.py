@@ -1,7 +1,8 @@
 """Constant tables and small immutable types of the gSCAN world (GSCAN_SPEC §1, §2, §4).
 
 Pure data plus the invariants every `Situation` satisfies (checked on construction);
-the physics lives in `world.py`, the planner in `planner.py`. Positions are (row, col) as in the dataset JSON (row 0 = north).
+the physics lives in `world.py`, the planner in `planner.py`. Positions are (row, col) as in
+the dataset JSON (row 0 = north).
 """
 from __future__ import annotations
 

@@ -1,0 +1,328 @@
+"""Writing gscan_ros bags: generated datasets (`write_bag`, `BagWriter.write_episode`) and
+live recordings (`BagWriter.write_recorded_episode`), one format (docs/bags.md).
+
+MCAP profile `ros2`, CDR messages (rclpy serialization via msg_adapters), `ros2msg`
+schemas with full dependency text, zstd chunks, and a rosbag2 `metadata.yaml`.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from collections import Counter
+from pathlib import Path
+from typing import Iterable, Mapping
+
+import yaml
+from mcap.well_known import MessageEncoding, Profile, SchemaEncoding
+from mcap.writer import CompressionType
+from mcap.writer import Writer as McapWriter
+
+from gscan_ros.data.bag_format import (
+    ACTION_DELAY_NS,
+    EPISODE_PERIOD_NS,
+    OUTCOME_ABORTED,
+    OUTCOME_COMPLETE,
+    STEP_NS,
+    episode_header,
+    live_episode,
+)
+from gscan_ros.data.bag_metadata import (
+    EPISODE_FORMAT,
+    EPISODE_FORMAT_VERSION,
+    METADATA_FILE,
+    STATUS_CLOSED,
+    STATUS_RECORDING,
+    BagInfo,
+    bag_owned_files,
+    mcap_file_name,
+    read_bag_info,
+    write_metadata,
+)
+from gscan_ros.data.bag_schema import (
+    ACTION,
+    COMMAND,
+    COMMAND_GRAPH,
+    OBSERVATION,
+    TOPICS,
+    WORLD_IMAGE,
+    YamlDumper,
+    message_definition,
+    msg_type_name,
+    offered_qos,
+    type_hash,
+)
+from gscan_ros.data.episode import Episode
+from gscan_ros.data.episode_log import ABORTED, EpisodeRecord
+from gscan_ros.errors import DatasetFormatError, GraphError
+from gscan_ros.language.graph import CommandGraph
+from gscan_ros.world.types import Action, Situation
+from msg_adapters import action_to_msg, graph_to_msg, image_to_msg, msg_to_cdr, observation_to_msg, text_to_msg
+
+DEFAULT_CHUNK_SIZE = 1 << 20
+
+
+class BagWriter:
+    """Incremental bag writer for generated datasets and live recorders.
+
+    Use as a context manager (or `open()` / `close()`). `write_episode` writes a whole
+    demonstration with synthetic times; `write_recorded_episode` writes a live one with
+    the messages and times the recorder received, and flushes it to disk. Both number
+    the episodes and count them per split (metadata.yaml `gscan_ros.splits`), so a live
+    bag and a generated one carry the same metadata. Completed chunks are flushed to
+    the file as they fill, so a killed writer leaves a readable prefix; `metadata.yaml`
+    exists from `open()` on (status `recording`) and gets the final counts at `close()`.
+    """
+
+    def __init__(
+        self,
+        bag_dir: str | os.PathLike,
+        *,
+        include_images: bool = False,
+        chunk_size: int = DEFAULT_CHUNK_SIZE,
+        overwrite: bool = False,
+    ):
+        self.bag_dir = Path(bag_dir)
+        self.mcap_path = self.bag_dir / mcap_file_name(self.bag_dir)
+        self.include_images = include_images
+        self._chunk_size = chunk_size
+        self._overwrite = overwrite
+        self._file = None
+        self._mcap: McapWriter | None = None
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+        self._topic_types: dict[str, str] = {}
+        self._counts: Counter[str] = Counter()
+        self._splits: Counter[str] = Counter()
+        self._start_ns: int | None = None
+        self._end_ns: int | None = None
+        self.episodes_written = 0
+        self.custom_data: dict[str, str] = {}  # extra metadata.yaml custom_data (`bag repair`'s notes)
+
+    # -- lifecycle -------------------------------------------------------------------
+    def open(self) -> "BagWriter":
+        self._prepare_dir()
+        self._file = open(self.mcap_path, "wb")
+        self._mcap = McapWriter(self._file, chunk_size=self._chunk_size, compression=CompressionType.ZSTD)
+        self._mcap.start(profile=Profile.ROS2, library="gscan_ros")
+        self._file.flush()
+        self._write_metadata(STATUS_RECORDING)
+        return self
+
+    def close(self) -> None:
+        """Finish the MCAP summary and write the final `metadata.yaml`."""
+        if self._mcap is None:
+            return
+        info_yaml = self._write_metadata(STATUS_CLOSED)
+        # rosbag2's MCAP storage also embeds the bag metadata in the file.
+        self._mcap.add_metadata("rosbag2", {"serialized_metadata": info_yaml})
+        self._mcap.finish()
+        self._file.close()
+        self._mcap = self._file = None
+
+    def __enter__(self) -> "BagWriter":
+        return self.open()
+
+    def __exit__(self, *exc_info) -> None:
+        self.close()
+
+    def flush(self) -> None:
+        """Write the chunk in progress and refresh metadata.yaml (a recorder's episode end)."""
+        self._require_open()
+        self._mcap.flush()
+        self._write_metadata(STATUS_RECORDING)
+
+    # -- writing -----------------------------------------------------------------------
+    def write_message(self, topic: str, msg, t_ns: int) -> None:
+        """Append one ROS message (any rosidl type) on `topic` at log time `t_ns`."""
+        self._write(topic, msg, t_ns)
+        self._file.flush()  # cheap when empty; pushes out a chunk the MCAP writer just closed
+
+    def write_episode(
+        self,
+        episode: Episode,
+        *,
+        graph: CommandGraph | None = None,
+        include_images: bool | None = None,
+        t0_ns: int | None = None,
+    ) -> int:
+        """Write one episode (header, graph, observation/action steps, `<eos>`); returns its last time."""
+        images = self.include_images if include_images is None else include_images
+        if t0_ns is None:
+            t0_ns = self.episodes_written * EPISODE_PERIOD_NS
+            if self._end_ns is not None:
+                t0_ns = max(t0_ns, self._end_ns + STEP_NS)
+        self._begin_episode(episode, OUTCOME_COMPLETE, t0_ns)
+        if graph is not None:
+            self._write(COMMAND_GRAPH.name, graph_to_msg(graph), t0_ns + ACTION_DELAY_NS)
+        world = None
+        if images:
+            from gscan_ros.world.world import World
+
+            world = World(episode.situation)
+        steps = (*episode.actions, Action.EOS)
+        for t, (state, action) in enumerate(zip(episode.states(), steps)):
+            t_ns = t0_ns + (t + 1) * STEP_NS
+            self._write(OBSERVATION.name, observation_to_msg(state), t_ns)
+            if world is not None:
+                self._write(WORLD_IMAGE.name, image_to_msg(world.render()), t_ns)
+                if action is not Action.EOS:
+                    world.step(action)
+            self._write(ACTION.name, action_to_msg(action), t_ns + ACTION_DELAY_NS)
+        self._end_episode(episode)
+        return self._end_ns
+
+    def write_recorded_episode(self, record: EpisodeRecord, graph: CommandGraph, situation: Situation, *,
+                               recorded_by: str) -> int:
+        """Write a live episode as recorded (`episode_log`), at the times its messages were
+        sent, and flush it to disk; returns its episode id.
+
+        `graph` and `situation` are the record's graph and situation messages, decoded:
+        the header names the command the policy followed, starts from `situation` and is
+        marked aborted when a reset ended the episode, which then gets a closing `<eos>`
+        stamped with the reset (the bag's episode delimiter).
+        """
+        aborted = record.outcome == ABORTED
+        episode = live_episode(graph, situation, record.actions, recorded_by=recorded_by,
+                               aborted_because=record.reason if aborted else None)
+        episode_id = self.episodes_written
+        self._begin_episode(episode, OUTCOME_ABORTED if aborted else OUTCOME_COMPLETE, record.start_ns)
+        self._write(COMMAND_GRAPH.name, record.graph.value, record.start_ns)
+        for step in record.steps:
+            self._write(OBSERVATION.name, step.observation.value, step.observation.t_ns)
+            if step.image is not None:
+                self._write(WORLD_IMAGE.name, step.image.value, step.image.t_ns)
+            if step.action is not None:
+                self._write(ACTION.name, action_to_msg(step.action.value), step.action.t_ns)
+        if aborted:
+            self._write(ACTION.name, action_to_msg(Action.EOS), record.end_ns)
+        self._end_episode(episode)
+        self.flush()
+        return episode_id
+
+    def _begin_episode(self, episode: Episode, outcome: str, t_ns: int) -> None:
+        header = episode_header(episode, self.episodes_written, outcome)
+        self._write(COMMAND.name, text_to_msg(json.dumps(header, separators=(",", ":"))), t_ns)
+
+    def _end_episode(self, episode: Episode) -> None:
+        self.count_episode(episode.split)
+        self._file.flush()
+
+    def count_episode(self, split: str | None) -> None:
+        """One more episode written (of `split`, when known): numbering and metadata counts."""
+        self.episodes_written += 1
+        if split is not None:
+            self._splits[split] += 1
+
+    # -- internals ---------------------------------------------------------------------
+    def _prepare_dir(self) -> None:
+        """Refuse a non-empty directory; with `overwrite`, replace only an old bag's own
+        files (metadata.yaml, *.mcap and the decode cache) and refuse anything else there."""
+        if self.bag_dir.exists() and not self.bag_dir.is_dir():
+            raise DatasetFormatError(f"{self.bag_dir}: exists and is not a directory (refusing to overwrite)")
+        if self.bag_dir.exists() and any(self.bag_dir.iterdir()):
+            if not self._overwrite:
+                raise DatasetFormatError(f"{self.bag_dir}: exists and is not empty (pass --overwrite to replace a bag)")
+            own = bag_owned_files(self.bag_dir)
+            foreign = sorted(p.name for p in self.bag_dir.iterdir() if p not in own)
+            if not (self.bag_dir / METADATA_FILE).is_file() or foreign:
+                holds = ", ".join(foreign[:3]) or "no metadata.yaml"
+                raise DatasetFormatError(f"{self.bag_dir}: not a bag (holds {holds}); refusing to overwrite")
+            for path in own:
+                if path.is_dir():
+                    shutil.rmtree(path)
+                else:
+                    path.unlink()
+        self.bag_dir.mkdir(parents=True, exist_ok=True)
+
+    def _require_open(self) -> None:
+        if self._mcap is None:
+            raise RuntimeError(f"bag writer for {self.bag_dir} is not open")
+
+    def _write(self, topic: str, msg, t_ns: int) -> None:
+        self._require_open()
+        channel_id = self._channels.get(topic)
+        if channel_id is None:
+            channel_id = self.register_channel(topic, msg_type_name(type(msg)))
+        self.add_record(topic, channel_id, msg_to_cdr(msg), t_ns, t_ns, 0)
+
+    # -- channels and records (`bag repair` copies another bag's through these) ------------
+    def channel_id(self, topic: str) -> int | None:
+        """The channel registered for `topic`, if any."""
+        return self._channels.get(topic)
+
+    def add_record(self, topic: str, channel_id: int, data: bytes, log_time: int, publish_time: int,
+                   sequence: int) -> None:
+        """Append serialized message bytes on a registered channel, times and sequence as given."""
+        self._mcap.add_message(channel_id, log_time=log_time, publish_time=publish_time, data=data, sequence=sequence)
+        self._counts[topic] += 1
+        self._start_ns = log_time if self._start_ns is None else min(self._start_ns, log_time)
+        self._end_ns = log_time if self._end_ns is None else max(self._end_ns, log_time)
+
+    def register_channel(
+        self,
+        topic: str,
+        msg_type: str,
+        *,
+        schema: tuple[str, bytes] | None = None,
+        message_encoding: str = MessageEncoding.CDR,
+        metadata: Mapping[str, str] | None = None,
+    ) -> int:
+        """Add `topic`'s channel (and its type's schema); `schema` = (encoding, text) and
+        `metadata` keep a copied channel's own (`bag repair`), else ours are generated."""
+        spec = TOPICS.get(topic)
+        if spec is not None and spec.msg_type != msg_type:
+            raise TypeError(f"topic {topic} carries {spec.msg_type}, got a {msg_type}")
+        schema_id = self._schemas.get(msg_type)
+        if schema_id is None:
+            if schema is None:
+                schema = (SchemaEncoding.ROS2, message_definition(msg_type).encode())
+            encoding, text = schema
+            schema_id = self._mcap.register_schema(msg_type, encoding, text)
+            self._schemas[msg_type] = schema_id
+        if metadata is None:
+            # rosbag2's MCAP storage keeps the offered QoS and type hash per channel.
+            metadata = {
+                "offered_qos_profiles": yaml.dump([offered_qos(topic)], Dumper=YamlDumper, sort_keys=False),
+                "topic_type_hash": type_hash(msg_type),
+            }
+        channel_id = self._mcap.register_channel(topic, message_encoding, schema_id, metadata=dict(metadata))
+        self._channels[topic] = channel_id
+        self._topic_types[topic] = msg_type
+        return channel_id
+
+    def _write_metadata(self, status: str) -> str:
+        return write_metadata(
+            self.bag_dir,
+            topic_types=self._topic_types,
+            counts=self._counts,
+            start_ns=self._start_ns,
+            end_ns=self._end_ns,
+            custom={
+                **self.custom_data,
+                "gscan_ros.format": EPISODE_FORMAT,
+                "gscan_ros.format_version": str(EPISODE_FORMAT_VERSION),
+                "gscan_ros.status": status,
+                "gscan_ros.splits": json.dumps(dict(sorted(self._splits.items()))),
+            },
+        )
+
+
+def write_bag(
+    bag_dir: str | os.PathLike,
+    episodes: Iterable[Episode],
+    *,
+    graphs: Mapping[str, CommandGraph] | None = None,
+    include_images: bool = False,
+    overwrite: bool = False,
+) -> BagInfo:
+    """Write `episodes` as one bag; `graphs` maps a command to its CommandGraph (optional)."""
+    with BagWriter(bag_dir, include_images=include_images, overwrite=overwrite) as writer:
+        for episode in episodes:
+            graph = None
+            if graphs is not None:
+                graph = graphs.get(episode.command)
+                if graph is None:
+                    raise GraphError(f"no command graph given for command {episode.command!r}")
+            writer.write_episode(episode, graph=graph)
+    return read_bag_info(bag_dir)

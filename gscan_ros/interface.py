@@ -1,0 +1,114 @@
+"""The ROS interface of the gscan_ros stack, as plain data: every topic and service, its type and QoS.
+
+One table serves both layers: the nodes turn each entry's `Qos` into an rclpy
+QoSProfile (`gscan_ros.nodes.common.qos_profile`), and the bag code records the same
+offered QoS in metadata.yaml and the MCAP channels (`gscan_ros.data.bag_schema`), so a
+replayed bag offers what the live stack offers. Nothing here imports rclpy: the data
+layer reads this table too. Names are relative, so a whole stack can live in a
+namespace; a bag stores them absolute (`Endpoint.bag_topic`).
+"""
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+RELIABLE, BEST_EFFORT = "reliable", "best_effort"
+VOLATILE, TRANSIENT_LOCAL = "volatile", "transient_local"
+TOPIC, SERVICE = "topic", "service"
+
+
+@dataclass(frozen=True)
+class Qos:
+    """A KEEP_LAST QoS profile in rosbag2's words (`reliability`, `durability`)."""
+
+    depth: int
+    reliability: str = RELIABLE
+    durability: str = VOLATILE
+
+    @property
+    def latched(self) -> bool:
+        """TRANSIENT_LOCAL: a late subscriber still gets the stored samples."""
+        return self.durability == TRANSIENT_LOCAL
+
+    def with_depth(self, depth: int) -> "Qos":
+        return Qos(depth, self.reliability, self.durability)
+
+
+# What writers offer.
+LATCHED = Qos(1, durability=TRANSIENT_LOCAL)  # world-state-like topics (DESIGN.md)
+# The world simulator's state streams: latched, but the writer keeps the last 64 states,
+# because a reliable depth-1 writer drops a state a busy recorder has not acknowledged
+# yet when the policy steps fast (~5 ms a step). A depth-1 reader sees only the newest.
+LATCHED_STATE = Qos(64, durability=TRANSIENT_LOCAL)
+# Event streams: deep enough that a burst of 1000 rejected commands is reported in
+# full, bounded so a flood cannot grow memory.
+EVENTS = Qos(1000)
+# Viewer-only streams (attention maps): a lost frame is harmless, a slow viewer must
+# never hold up the policy.
+VIEWER = Qos(5, reliability=BEST_EFFORT)
+
+# Reader depths: the newest sample only (the policy), or every sample while busy
+# (recorders, test probes).
+LATEST_DEPTH = 1
+LOG_DEPTH = 1000
+
+
+@dataclass(frozen=True)
+class Endpoint:
+    """One topic or service of the stack."""
+
+    name: str  # relative ROS name; for a family (`attention/<word>`) its prefix
+    kind: str  # TOPIC or SERVICE
+    type: str  # "pkg/msg/Type" or "pkg/srv/Type"
+    qos: Qos | None  # what the publisher offers (None for a service)
+    recorded: bool = False  # a topic of gscan_ros bags (docs/bags.md)
+
+    @property
+    def latched(self) -> bool:
+        return self.qos is not None and self.qos.latched
+
+    @property
+    def bag_topic(self) -> str:
+        """The absolute name a bag stores."""
+        return f"/{self.name}"
+
+
+COMMAND = Endpoint("command", TOPIC, "std_msgs/msg/String", EVENTS, recorded=True)
+COMMAND_GRAPH = Endpoint("command_graph", TOPIC, "std_msgs/msg/String", LATCHED, recorded=True)
+STATUS = Endpoint("status", TOPIC, "std_msgs/msg/String", EVENTS)
+OBSERVATION = Endpoint("observation", TOPIC, "std_msgs/msg/UInt8MultiArray", LATCHED_STATE, recorded=True)
+SITUATION = Endpoint("situation", TOPIC, "std_msgs/msg/String", LATCHED_STATE)
+WORLD_RESET = Endpoint("world_reset", TOPIC, "std_msgs/msg/Header", LATCHED)
+WORLD_IMAGE = Endpoint("world_image", TOPIC, "sensor_msgs/msg/Image", LATCHED_STATE, recorded=True)
+ACTION = Endpoint("action", TOPIC, "std_msgs/msg/String", EVENTS, recorded=True)
+ATTENTION = Endpoint("attention", TOPIC, "sensor_msgs/msg/Image", VIEWER)  # attention/<word>
+SIZE_ORDERING = Endpoint("attention/size_ordering", TOPIC, "sensor_msgs/msg/Image", VIEWER)
+RESET_WORLD = Endpoint("reset_world", SERVICE, "std_srvs/srv/Trigger", None)
+
+ENDPOINTS: tuple[Endpoint, ...] = (
+    COMMAND, COMMAND_GRAPH, STATUS, OBSERVATION, SITUATION, WORLD_RESET, WORLD_IMAGE, ACTION,
+    ATTENTION, SIZE_ORDERING, RESET_WORLD,
+)
+RECORDED: tuple[Endpoint, ...] = tuple(e for e in ENDPOINTS if e.recorded)
+
+
+def topic_token(word: str) -> str:
+    """A valid ROS name token for a graph word: "while spinning" -> "while_spinning", "<root>" -> "root"."""
+    token = re.sub(r"[^0-9A-Za-z]+", "_", word).strip("_")
+    return token if token and not token[0].isdigit() else f"w_{token}"
+
+
+def attention_topic(word: str) -> str:
+    """`attention/<word>`: where the policy publishes the word module's attention map."""
+    return f"{ATTENTION.name}/{topic_token(word)}"
+
+
+def endpoint_of(topic: str) -> Endpoint | None:
+    """The table's entry for a relative or absolute topic name (family members included)."""
+    name = topic.lstrip("/")
+    for endpoint in ENDPOINTS:
+        if endpoint.kind == TOPIC and endpoint.name == name:
+            return endpoint
+    if name.startswith(f"{ATTENTION.name}/"):
+        return ATTENTION
+    return None

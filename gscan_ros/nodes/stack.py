@@ -1,0 +1,136 @@
+"""The gscan_ros nodes in one process, spun by one MultiThreadedExecutor.
+
+The same node classes and parameters as `launch/gscan.launch.py`, for machines without
+`ros2 launch` (`gscan-ros bringup`) and for the demo, which drives the stack with a
+GscanCommander in the same process.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from gscan_ros.errors import GscanError
+from gscan_ros.world.types import GRID_SIZE
+
+DEFAULT_MAX_STEPS = 120
+
+
+@dataclass(frozen=True)
+class StackOptions:
+    """What `gscan-ros bringup` / `demo` set; each field becomes a node parameter."""
+
+    checkpoint: Path | None = None
+    parser: str = ""
+    dataset: Path | None = None
+    split: str = "test"
+    index: int = 0
+    seed: int = 0
+    grid_size: int = GRID_SIZE
+    max_steps: int = DEFAULT_MAX_STEPS
+    record: Path | None = None
+    record_images: bool = False
+    overwrite: bool = False
+
+
+class Stack:
+    """The nodes of one stack in rclpy's default context, spun by a MultiThreadedExecutor.
+
+    Use as a context manager; `spin()` blocks (Ctrl-C returns), `start()` spins in a
+    background thread (the demo). Leaving the context destroys the nodes, which closes
+    the recorder's bag.
+    """
+
+    def __init__(self, options: StackOptions):
+        self.options = options
+        self.nodes = []
+        self._thread: threading.Thread | None = None
+
+    def __enter__(self) -> "Stack":
+        import rclpy
+        from rclpy.executors import MultiThreadedExecutor
+
+        rclpy.init()
+        try:
+            self.nodes = self._build()
+        except BaseException:
+            self._destroy()
+            rclpy.try_shutdown()
+            raise
+        self.executor = MultiThreadedExecutor()
+        for node in self.nodes:
+            self.executor.add_node(node)
+        return self
+
+    def _build(self) -> list:
+        from gscan_ros.nodes.parser_node import ParserNode
+        from gscan_ros.nodes.policy_node import PolicyNode
+        from gscan_ros.nodes.world_simulator_node import WorldSimulatorNode
+
+        o = self.options
+        checkpoint = str(o.checkpoint) if o.checkpoint else ""
+        self.nodes = []  # filled as built, so a failure destroys what exists
+        self.nodes.append(WorldSimulatorNode(parameter_overrides=_params(
+            dataset=str(o.dataset) if o.dataset else "", split=o.split, index=o.index, seed=o.seed,
+            grid_size=o.grid_size,
+        )))
+        self.nodes.append(ParserNode(parameter_overrides=_params(checkpoint=checkpoint, parser=o.parser)))
+        self.nodes.append(PolicyNode(parameter_overrides=_params(checkpoint=checkpoint, max_steps=o.max_steps)))
+        if o.record is not None:
+            from gscan_ros.nodes.episode_recorder_node import EpisodeRecorderNode
+
+            self.nodes.append(EpisodeRecorderNode(parameter_overrides=_params(
+                bag_dir=str(o.record), include_images=o.record_images, overwrite=o.overwrite,
+            )))
+        return self.nodes
+
+    def node(self, cls):
+        """The stack's node of class `cls`."""
+        return next(n for n in self.nodes if isinstance(n, cls))
+
+    def spin(self) -> None:
+        from rclpy.executors import ExternalShutdownException
+
+        try:
+            self.executor.spin()
+        except (KeyboardInterrupt, ExternalShutdownException):
+            pass
+
+    def start(self) -> None:
+        """Spin in a background thread (the caller drives the stack, e.g. with a GscanCommander)."""
+        self._thread = threading.Thread(target=self.spin, name="gscan-stack", daemon=True)
+        self._thread.start()
+
+    def wait_until_recording(self, timeout: float = 30.0) -> None:
+        """With a recorder: wait until it has the world state, so the next episode is recorded."""
+        from gscan_ros.nodes.episode_recorder_node import EpisodeRecorderNode
+
+        recorders = [n for n in self.nodes if isinstance(n, EpisodeRecorderNode)]
+        deadline = time.monotonic() + timeout
+        while not all(r.ready for r in recorders):
+            if time.monotonic() > deadline:
+                raise GscanError(f"timed out after {timeout:.0f} s waiting for episode_recorder_node "
+                                 "to receive the world state")
+            time.sleep(0.005)
+
+    def __exit__(self, *exc_info) -> None:
+        import rclpy
+
+        if hasattr(self, "executor"):
+            self.executor.shutdown()
+        if self._thread is not None:
+            self._thread.join(timeout=10)
+        self._destroy()
+        rclpy.try_shutdown()
+
+    def _destroy(self) -> None:
+        for node in reversed(self.nodes):
+            node.destroy_node()
+        self.nodes = []
+
+
+def _params(**values):
+    from rclpy.parameter import Parameter
+
+    return [Parameter(name, value=value) for name, value in values.items()]

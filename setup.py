@@ -25,12 +25,15 @@ setup(
         (f"lib/{PACKAGE}", glob("scripts/*")),
     ],
     python_requires=">=3.11",
-    install_requires=["numpy", "nltk", "mcap", "mcap-ros2-support", "pyyaml", "tqdm", "matplotlib", "pillow"],
+    # What the package imports at run time, loosely (requirements.txt pins exact versions). rclpy and
+    # the message packages come from ROS (package.xml), not from an index.
+    install_requires=["torch", "numpy", "nltk", "mcap", "zstandard", "lz4", "pyyaml", "tqdm", "matplotlib", "pillow"],
     zip_safe=True,
     maintainer="gscan_ros maintainers",
     description="gSCAN command following with compositional networks on ROS 2 Jazzy",
     license="MIT",
-    extras_require={"test": ["pytest"]},  # `tests_require` is gone from setuptools >= 72
+    # Imported only by tests/ (`pip install .[test]`); `tests_require` is gone from setuptools >= 72.
+    extras_require={"test": ["pytest", "hypothesis", "mcap-ros2-support", "rosbags"]},
     entry_points={
         "console_scripts": [
             "gscan-ros = gscan_ros.cli:main",

@@ -15,8 +15,8 @@ import argparse
 import resource
 import time
 
+from gscan_ros.model.policy import MAX_STEPS
 from gscan_ros.model.runtime import DEVICES
-from gscan_ros.training.evaluate import MAX_STEPS
 
 from _data import dataset_or_generated
 

@@ -35,10 +35,10 @@ class Qos:
 
 
 # What writers offer.
-LATCHED = Qos(1, durability=TRANSIENT_LOCAL)  # world-state-like topics (DESIGN.md)
+LATCHED = Qos(1, durability=TRANSIENT_LOCAL)  # world-state-like topics (docs/ros.md)
 # The world simulator's state streams: latched, but the writer keeps the last 64 states,
 # because a reliable depth-1 writer drops a state a busy recorder has not acknowledged
-# yet when the policy steps fast (~5 ms a step). A depth-1 reader sees only the newest.
+# yet when the policy steps fast (a few ms a step: docs/results.md). A depth-1 reader sees only the newest.
 LATCHED_STATE = Qos(64, durability=TRANSIENT_LOCAL)
 # Event streams: deep enough that a burst of 1000 rejected commands is reported in
 # full, bounded so a flood cannot grow memory.

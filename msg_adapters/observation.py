@@ -1,4 +1,4 @@
-"""Observation uint8[row, col, channel] <-> std_msgs/UInt8MultiArray (DESIGN.md `observation`).
+"""Observation uint8[row, col, channel] <-> std_msgs/UInt8MultiArray (docs/ros.md `observation`).
 
 The layout follows the std_msgs/MultiArrayLayout convention: one dimension per array
 axis, outermost first, `stride` = number of elements spanned by one step of the axis

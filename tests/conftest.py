@@ -1,5 +1,6 @@
 """Suite-wide settings and shared fixtures: deterministic hypothesis runs sized for a 2-core
-CI machine, and the markers that keep the quick loop quick (markers in setup.cfg)."""
+CI machine, DDS on loopback, and fixtures. Markers (setup.cfg) are set by each module itself
+(`pytestmark = pytest.mark.e2e`); non-ROS tests import no ROS support (ros_helpers)."""
 import json
 import os
 from pathlib import Path
@@ -20,24 +21,6 @@ settings.load_profile("ci")
 
 # DDS must stay on loopback for every test that touches ROS (machine rule).
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-
-# Markers of whole modules that do not set `pytestmark` themselves: ROS stacks in
-# subprocesses (e2e) and installs of the package (packaging).
-MODULE_MARKERS = {
-    "test_e2e_bringup.py": "e2e",
-    "test_e2e_stack.py": "e2e",
-    "test_nodes_launch.py": "e2e",
-    "test_nodes_demo.py": "e2e",
-    "test_nodes_wheel.py": "packaging",
-}
-
-
-def pytest_collection_modifyitems(items):
-    for item in items:
-        marker = MODULE_MARKERS.get(item.path.name)
-        if marker is not None:
-            item.add_marker(marker)
-
 
 @pytest.fixture(scope="session")
 def tiny_dataset(tmp_path_factory):

@@ -1,10 +1,16 @@
-"""Synthetic parse graphs and one-hot states for model tests (no parser or world needed)."""
+"""Synthetic parse graphs and one-hot states for model tests (no parser or world needed), and a
+tiny checkpoint file for the CLI and node tests. No ROS here: non-ROS tests import this."""
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 import torch
 
+from gscan_ros.language import all_commands, get_parser
 from gscan_ros.language.graph import CommandGraph, GraphEdge, GraphNode
+from gscan_ros.language.lexicon import Lexicon
+from gscan_ros.model.checkpoint import checkpoint_dict, save_checkpoint
 from gscan_ros.model.compositional import CompositionalNetwork, ModelConfig, ModuleSpec, ModuleTable
 
 SIZE_KEY = "big|small"
@@ -128,3 +134,22 @@ def walk_episodes(n: int, seed: int = 0, max_distance: int = 3):
         command = f"walk to a {color} {shape}"
         out.append(Episode(command, situation, tuple(demonstrate(situation, command)), "train", len(out)))
     return out
+
+
+def tiny_checkpoint(path: Path, seed: int = 0, weight_scale: float = 1.0) -> Path:
+    """A randomly initialised, very small compositional policy for the semantic parser.
+
+    The node and e2e tests check the protocol (actions until `<eos>` or max_steps), never the
+    policy's quality, so an untrained model is enough and takes a second to build.
+    Scaling the initial weights up makes its (random) actions depend more on the
+    observation, so episodes move the agent instead of repeating one action.
+    """
+    torch.manual_seed(seed)
+    parser = get_parser("semantic", Lexicon.none())
+    table = ModuleTable.from_graphs(parser.parse(c) for c in all_commands())
+    model = CompositionalNetwork(ModelConfig(cnn_channels=4, att_dim=4, rnn_layers=1, rnn_dim=8), table)
+    with torch.no_grad():
+        for weights in model.parameters():
+            weights.mul_(weight_scale)
+    save_checkpoint(path, checkpoint_dict(model, parser="semantic", lexicon=Lexicon.none(), step=0, metrics={}))
+    return path

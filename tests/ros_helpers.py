@@ -1,4 +1,4 @@
-"""Test support for ROS: node processes, a probe node, parameters, a tiny checkpoint.
+"""Test support for ROS: node processes, a probe node, parameters, an in-process stack.
 
 Used by the node and end-to-end tests and (through bench/_ros.py) the ROS benchmarks.
 It encodes this project's rules for DDS on shared machines (docs/ros.md "Testing"):
@@ -213,32 +213,6 @@ class Probe:
         rclpy.try_shutdown(context=self.context)
 
 
-def tiny_checkpoint(path: Path, seed: int = 0, weight_scale: float = 1.0) -> Path:
-    """A randomly initialised, very small compositional policy for the semantic parser.
-
-    The e2e tests check the protocol (actions until `<eos>` or max_steps), never the
-    policy's quality, so an untrained model is enough and takes a second to build.
-    Scaling the initial weights up makes its (random) actions depend more on the
-    observation, so episodes move the agent instead of repeating one action.
-    """
-    import torch
-
-    from gscan_ros.language import all_commands, get_parser
-    from gscan_ros.language.lexicon import Lexicon
-    from gscan_ros.model.checkpoint import checkpoint_dict, save_checkpoint
-    from gscan_ros.model.compositional import CompositionalNetwork, ModelConfig, ModuleTable
-
-    torch.manual_seed(seed)
-    parser = get_parser("semantic", Lexicon.none())
-    table = ModuleTable.from_graphs(parser.parse(c) for c in all_commands())
-    model = CompositionalNetwork(ModelConfig(cnn_channels=4, att_dim=4, rnn_layers=1, rnn_dim=8), table)
-    with torch.no_grad():
-        for weights in model.parameters():
-            weights.mul_(weight_scale)
-    save_checkpoint(path, checkpoint_dict(model, parser="semantic", lexicon=Lexicon.none(), step=0, metrics={}))
-    return path
-
-
 def parameters(**values) -> list:
     """rclpy parameter overrides for constructing a node in-process."""
     from rclpy.parameter import Parameter
@@ -285,11 +259,12 @@ class ScriptedPolicy:
         return StepOutput(action, {"red": eye, "while spinning": eye[::-1].copy()})
 
 
-def in_process_stack(probe: Probe, checkpoint: Path, script, *, max_steps: int = 120, bag_dir: Path | None = None,
-                     on_step=None, seed: int = 3):
+def in_process_stack(probe: Probe, checkpoint: Path, script, *, max_steps: int | None = None,
+                     bag_dir: Path | None = None, on_step=None, seed: int = 3):
     """A stack in the probe's context, spun in the background: world_simulator_node (`seed`,
     no images), parser_node (`checkpoint`), policy_node playing `script` (ScriptedPolicy)
-    and, with `bag_dir`, episode_recorder_node. Returns the nodes by name (and `policy`)."""
+    and, with `bag_dir`, episode_recorder_node. `max_steps` None keeps policy_node's default
+    (`gscan_ros.model.policy.MAX_STEPS`). Returns the nodes by name (and `policy`)."""
     from types import SimpleNamespace
 
     from gscan_ros.nodes.episode_recorder_node import EpisodeRecorderNode
@@ -303,7 +278,8 @@ def in_process_stack(probe: Probe, checkpoint: Path, script, *, max_steps: int =
         policy=policy,
         world=WorldSimulatorNode(context=context, parameter_overrides=parameters(seed=seed, publish_images=False)),
         parser=ParserNode(context=context, parameter_overrides=parameters(checkpoint=str(checkpoint))),
-        policy_node=PolicyNode(policy, context=context, parameter_overrides=parameters(max_steps=max_steps)),
+        policy_node=PolicyNode(policy, context=context, parameter_overrides=parameters(
+            **({} if max_steps is None else {"max_steps": max_steps}))),
         recorder=None,
     )
     if bag_dir is not None:

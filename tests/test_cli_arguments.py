@@ -11,7 +11,7 @@ from gscan_ros.errors import CheckpointError
 from gscan_ros.model.checkpoint import read_checkpoint, save_checkpoint
 from gscan_ros.model.policy import Policy
 
-from ros_helpers import tiny_checkpoint
+from model_support import tiny_checkpoint
 
 CPUS = available_cpus()
 

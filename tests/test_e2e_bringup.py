@@ -1,10 +1,15 @@
 """`gscan-ros bringup` (all nodes in one process) answers a command from another process."""
 import signal
 
+import pytest
+
 from gscan_ros.nodes.commander import GscanCommander
 from gscan_ros.world.types import Action
 
-from ros_helpers import STARTUP_TIMEOUT, VENV_BIN, NodeProcess, Probe, fresh_domain_id, ros_env, tiny_checkpoint
+from model_support import tiny_checkpoint
+from ros_helpers import STARTUP_TIMEOUT, VENV_BIN, NodeProcess, Probe, fresh_domain_id, ros_env
+
+pytestmark = pytest.mark.e2e  # `gscan-ros bringup` in a subprocess
 
 
 def test_bringup_follows_a_command_and_stops_on_sigint(tmp_path):

@@ -21,7 +21,10 @@ from gscan_ros.world import World
 from gscan_ros.world.types import Action
 from msg_adapters import msg_to_graph
 
-from ros_helpers import STARTUP_TIMEOUT, NodeProcess, Probe, fresh_domain_id, ros_env, tiny_checkpoint
+from model_support import tiny_checkpoint
+from ros_helpers import STARTUP_TIMEOUT, NodeProcess, Probe, fresh_domain_id, ros_env
+
+pytestmark = pytest.mark.e2e  # the nodes as separate processes
 
 SEED = 0
 MAX_STEPS = 10

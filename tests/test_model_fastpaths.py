@@ -122,3 +122,51 @@ def test_segment_matmul_gradients():
     assert torch.autograd.gradcheck(lambda a, b: SegmentMatmul.apply(a, b, sizes), (x, w))
 
 
+
+
+def grid_episode_states(rng: np.random.Generator, g: int, lengths: list[int]) -> tuple[np.ndarray, torch.Tensor]:
+    """Episodes on a g x g grid (objects stay, the agent moves) and each state's episode id."""
+    episodes = []
+    for length in lengths:
+        objects = np.zeros((g, g, 16), dtype=np.uint8)
+        for c in rng.choice(g * g, size=6, replace=False):
+            r, col = divmod(int(c), g)
+            objects[r, col, [rng.integers(0, 4), 4 + rng.integers(0, 3), 7 + rng.integers(0, 4)]] = 1
+        states = np.repeat(objects[None], length, 0)
+        for t in range(length):
+            r, col = divmod(int(rng.integers(g * g)), g)
+            states[t, r, col, [11, 12 + rng.integers(0, 4)]] = 1
+        episodes.append(states)
+    return np.concatenate(episodes), torch.tensor(np.repeat(np.arange(len(lengths)), lengths))
+
+
+@pytest.mark.parametrize("grid", [8, 12])
+@pytest.mark.parametrize("grouped", [False, True])
+def test_per_cell_training_encoder_matches_the_dense_conv_with_gradients(grid, grouped):
+    net = make_net(ModelConfig(grid_size=grid, cnn_kernels=(1, 5, 13), cnn_dropout=0.0))
+    assert net.encoder.sparse.per_cell  # wide grids train through the canvas bags
+    states, groups = grid_episode_states(np.random.default_rng(grid), grid, [4, 1, 6])
+    groups[2] = -1  # a state outside any group keeps all its bits
+    net.encoder.train()
+    fast = net.encoder(*sparse_states(states), groups=groups if grouped else None)
+    dense = net.encoder.dense(torch.from_numpy(states))
+    torch.testing.assert_close(fast, dense, atol=1e-4, rtol=1e-4)
+    upstream = torch.randn_like(dense)
+    params = list(net.encoder.parameters())
+    for a, b in zip(torch.autograd.grad((fast * upstream).sum(), params),
+                    torch.autograd.grad((dense * upstream).sum(), params), strict=True):
+        torch.testing.assert_close(a, b, atol=1e-3, rtol=1e-4)
+
+
+def test_per_cell_and_toeplitz_training_paths_drop_the_same_features():
+    net = make_net(ModelConfig(grid_size=8))
+    states, groups = grid_episode_states(np.random.default_rng(3), 8, [5, 3])
+    bags = sparse_states(states)
+    net.encoder.train()
+    out = []
+    for per_cell in (True, False):
+        net.encoder.sparse.per_cell = per_cell
+        torch.manual_seed(5)
+        out.append(net.encoder(*bags, groups=groups))
+    torch.testing.assert_close(out[0], out[1], atol=1e-5, rtol=1e-5)
+    assert (out[0] == 0).float().mean() > 0.1  # the dropout (p = 0.1) applied to both

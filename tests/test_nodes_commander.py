@@ -7,7 +7,8 @@ from gscan_ros.nodes.commander import GscanCommander, Outcome
 from gscan_ros.nodes.common import EVENT_QOS
 from gscan_ros.world.types import Action
 
-from ros_helpers import Probe, fresh_domain_id, in_process_stack, tiny_checkpoint
+from model_support import tiny_checkpoint
+from ros_helpers import Probe, fresh_domain_id, in_process_stack
 
 WALK, TURN, EOS = Action.WALK, Action.TURN_LEFT, Action.EOS
 TIMEOUT = 30.0

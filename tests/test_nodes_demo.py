@@ -1,13 +1,17 @@
 """`gscan-ros demo`: one episode through the in-process stack, printed, recorded and animated."""
 import os
 
+import pytest
 from PIL import Image
 
 from gscan_ros.cli import main
 from gscan_ros.data.bag import iter_bag_episodes
 from gscan_ros.data.sources import sample_episode
 
-from ros_helpers import fresh_domain_id, tiny_checkpoint
+from model_support import tiny_checkpoint
+from ros_helpers import fresh_domain_id
+
+pytestmark = pytest.mark.e2e  # a whole stack, driven by the demo
 
 
 def test_demo_prints_the_episodes_and_writes_bag_and_gifs(tmp_path, monkeypatch, capsys):

@@ -10,12 +10,15 @@ from pathlib import Path
 import pytest
 import yaml
 
-from ros_helpers import Probe, fresh_domain_id, parameters, tiny_checkpoint
+from model_support import tiny_checkpoint
+from ros_helpers import Probe, fresh_domain_id, parameters
 
 REPO = Path(__file__).resolve().parents[1]
 LAUNCH = REPO / "launch" / "gscan.launch.py"
 PARAMS = REPO / "config" / "params.yaml"
 NODES = ("world_simulator_node", "parser_node", "policy_node", "episode_recorder_node")
+
+pytestmark = pytest.mark.e2e  # every node of the stack, built in a probe's context
 
 
 def launch_node_kwargs() -> list[dict]:

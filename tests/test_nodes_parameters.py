@@ -8,7 +8,8 @@ from gscan_ros.data.bag import iter_bag_episodes, read_bag_info
 from gscan_ros.nodes.commander import GscanCommander, Outcome
 from gscan_ros.world.types import Action
 
-from ros_helpers import Probe, fresh_domain_id, in_process_stack, tiny_checkpoint
+from model_support import tiny_checkpoint
+from ros_helpers import Probe, fresh_domain_id, in_process_stack
 
 TIMEOUT = 30.0
 COMMAND = "walk to a red circle"

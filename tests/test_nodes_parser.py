@@ -8,7 +8,8 @@ from gscan_ros.nodes.common import EVENT_QOS, LATCHED_LOG_QOS
 from gscan_ros.nodes.parser_node import ParserNode
 from msg_adapters import msg_to_cdr, msg_to_graph
 
-from ros_helpers import Probe, fresh_domain_id, parameters, tiny_checkpoint
+from model_support import tiny_checkpoint
+from ros_helpers import Probe, fresh_domain_id, parameters
 
 
 def cdr(text: str | bytes) -> bytes:

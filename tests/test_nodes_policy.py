@@ -1,14 +1,16 @@
 """policy_node in-process with a scripted policy: lock-step timing, max_steps, preemption, bad graphs."""
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from rclpy.qos import ReliabilityPolicy
 from sensor_msgs.msg import Image
 from std_msgs.msg import String
 
 from gscan_ros.language import get_parser
-from gscan_ros.model.policy import StepOutput
+from gscan_ros.model.policy import MAX_STEPS, StepOutput
 from gscan_ros.nodes.common import EVENT_QOS, VIEWER_LOG_QOS
 from gscan_ros.nodes.policy_node import PolicyNode
 from gscan_ros.world.types import Action
@@ -85,6 +87,14 @@ def test_max_steps_forces_eos(probe):
     assert len(policy.seen) == 3  # idle after <eos>
     probe.spin_until(lambda: any("stopped at max_steps=3" in s.data for s in status), what="the cap notice")
 
+
+
+def test_the_default_cap_is_the_policys_max_steps_in_the_node_and_in_params_yaml(probe):
+    """config/params.yaml cannot import MAX_STEPS, so it repeats the value; this keeps the two equal."""
+    params = yaml.safe_load((Path(__file__).resolve().parents[1] / "config" / "params.yaml").read_text())
+    assert params["/**/policy_node"]["ros__parameters"]["max_steps"] == MAX_STEPS
+    node, _ = start(probe, [Action.EOS])
+    assert node.get_parameter("max_steps").value == MAX_STEPS
 
 def test_model_eos_ends_the_episode(probe):
     actions = probe.record("action", String, EVENT_QOS)

@@ -5,6 +5,10 @@ import sys
 import zipfile
 from pathlib import Path
 
+import pytest
+
+pytestmark = pytest.mark.packaging  # builds a wheel with pip
+
 REPO = Path(__file__).resolve().parents[1]
 NODES = ("world_simulator_node", "parser_node", "policy_node", "episode_recorder_node")
 # What setup.py packages; copied so the in-tree build leaves no build/ behind in the repo.

@@ -1,6 +1,9 @@
 """package.xml declares every third-party module the package and its tests import, under
-its rosdep key, so `rosdep install --from-paths` installs what the code needs."""
+its rosdep key, so `rosdep install --from-paths` installs what the code needs; setup.py
+lists the same Python (non-ROS) ones for pip: run-time in install_requires, test-only in
+the `test` extra."""
 import ast
+import re
 import sys
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -38,6 +41,9 @@ ROSDEP_KEYS = {
 RUNTIME_SOURCES = ("gscan_ros", "msg_adapters", "launch", "scripts")
 OWN = {"gscan_ros", "msg_adapters"}
 RUNTIME = ("exec_depend", "depend")
+# Import name -> pip distribution where they differ. ROS packages (rosdep key not python3-*)
+# come from ROS, not from pip.
+DISTRIBUTIONS = {"PIL": "pillow", "yaml": "pyyaml", "mcap_ros2": "mcap-ros2-support"}
 
 
 def imported_modules(*roots: str) -> set[str]:
@@ -80,3 +86,27 @@ def test_build_and_data_dependencies():
     assert root.findtext("export/build_type") == "ament_python"
     assert {ROSDEP_KEYS[m] for m in imported_modules("setup.py")} <= declared("build_depend", "depend")
     assert "wordnet-base" in declared(*RUNTIME)  # the lexicon reads Debian's WordNet files
+
+
+def setup_requirements() -> tuple[set[str], set[str]]:
+    """setup.py's install_requires and extras_require['test'] (names without version specifiers)."""
+    call = next(n for n in ast.walk(ast.parse((REPO / "setup.py").read_text()))
+                if isinstance(n, ast.Call) and getattr(n.func, "id", None) == "setup")
+    wanted = ("install_requires", "extras_require")
+    kwargs = {k.arg: ast.literal_eval(k.value) for k in call.keywords if k.arg in wanted}
+
+    def names(requirements):
+        return {re.split(r"[<>=!~\[; ]", r, maxsplit=1)[0].lower() for r in requirements}
+
+    return names(kwargs["install_requires"]), names(kwargs["extras_require"]["test"])
+
+
+def pip_names(modules: set[str]) -> set[str]:
+    return {DISTRIBUTIONS.get(m, m).lower() for m in modules if ROSDEP_KEYS.get(m, "").startswith("python3-")}
+
+
+def test_setup_py_requires_the_python_imports_and_keeps_test_only_ones_in_the_test_extra():
+    runtime, test = setup_requirements()
+    runtime_imports = imported_modules(*RUNTIME_SOURCES)
+    assert runtime == pip_names(runtime_imports)
+    assert test == pip_names(imported_modules("tests") - runtime_imports)

@@ -5,7 +5,7 @@ from gscan_ros.cli import main
 from gscan_ros.data.bag import BagWriter
 from gscan_ros.errors import DatasetFormatError
 
-from ros_helpers import fresh_domain_id, tiny_checkpoint
+from model_support import tiny_checkpoint
 
 
 def _user_folder(path):
@@ -23,6 +23,8 @@ def _snapshot(path):
 
 
 def test_bringup_record_refuses_a_folder_that_holds_a_metadata_yaml(tmp_path, monkeypatch, capsys):
+    from ros_helpers import fresh_domain_id  # the one test here that starts nodes (in-process)
+
     monkeypatch.setenv("ROS_DOMAIN_ID", str(fresh_domain_id()))
     folder = _user_folder(tmp_path / "work")
     before = _snapshot(folder)

@@ -10,7 +10,7 @@ import argparse
 from pathlib import Path
 
 from gscan_ros.cli.args import int_in, nonnegative_int, positive_int
-from gscan_ros.nodes.stack import DEFAULT_MAX_STEPS, StackOptions  # rclpy is imported only when a stack starts
+from gscan_ros.nodes.stack import StackOptions  # rclpy and torch are imported only when a stack starts
 from gscan_ros.world.types import GRID_SIZE, SUPPORTED_GRID_SIZES
 
 
@@ -26,7 +26,8 @@ def add_stack_arguments(parser: argparse.ArgumentParser) -> None:
                         help="first sampling seed without --dataset (default: 0)")
     source.add_argument("--grid-size", type=int_in(SUPPORTED_GRID_SIZES[0], SUPPORTED_GRID_SIZES[-1]),
                         default=GRID_SIZE, help=f"grid side of sampled worlds without --dataset (default: {GRID_SIZE})")
-    parser.add_argument("--max-steps", type=positive_int, default=DEFAULT_MAX_STEPS, help="action cap per episode")
+    parser.add_argument("--max-steps", type=positive_int, default=None,
+                        help="action cap per episode (default: policy_node's, gscan_ros.model.policy.MAX_STEPS)")
 
 
 def register(subparsers) -> None:

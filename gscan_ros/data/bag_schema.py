@@ -1,4 +1,4 @@
-"""Topics, QoS and ros2msg schemas of gscan_ros bags (rosbag2 + MCAP, DESIGN.md "Bags").
+"""Topics, QoS and ros2msg schemas of gscan_ros bags (rosbag2 + MCAP, docs/bags.md).
 
 Topic names, types and offered QoS come from the stack's interface table
 (`gscan_ros.interface`), so a bag records what the live publishers offer.

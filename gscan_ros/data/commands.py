@@ -1,4 +1,4 @@
-"""The 675 gSCAN commands of the `adverb` grammar (GSCAN_SPEC §5) and their dataset fields.
+"""The 675 gSCAN commands of the `adverb` grammar (LauraRuis/groundedSCAN `grammar.py`) and their dataset fields.
 
 The grammar (ROOT -> VP; VP -> VP RB once; VP -> VV_intrans 'to' DP | VV_trans DP;
 DP -> 'a' NP; NP -> JJ NP at most twice; NP -> NN) with the rule that two adjectives

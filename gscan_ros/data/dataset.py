@@ -1,4 +1,6 @@
-"""gSCAN `dataset.txt`: header, examples, a streaming reader and a writer (GSCAN_SPEC §6).
+"""gSCAN `dataset.txt`: header, examples, a streaming reader and a writer.
+
+The format is what LauraRuis/groundedSCAN's `dataset.py` (`save_dataset`) writes.
 
 The released compositional file is ~2 GB of ONE JSON object, so the reader never
 loads it whole: `_JsonStream` walks the two outer levels (top-level keys, then

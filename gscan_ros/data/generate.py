@@ -1,6 +1,6 @@
 """Generate a gSCAN dataset: commands x target objects x layouts -> planned examples -> splits.
 
-Pipeline (GSCAN_SPEC §1.3, §1.4, §7):
+Pipeline (as LauraRuis/groundedSCAN `dataset.py`):
 
 1. layouts (`sample_placements`) per target object, from the seed;
 2. candidates: every command, every object it can refer to, every layout of that
@@ -338,7 +338,7 @@ def _header(config: GenerationConfig, result: SplitResult, generated: int, candi
         "generated": generated,
         "dropped_multiple_rules": result.dropped_multiple_rules,
         "discarded_equivalent": result.discarded_equivalent,
-        # The k-shot examples are the last ones of train (quirk Q2: seeded and recorded).
+        # The k-shot examples are the last ones of train (quirk Q2, docs/model.md: seeded and recorded).
         "k_shot_train_indices": list(range(len(train) - len(result.k_shot), len(train))),
     }
     if config.split_kind == "length":

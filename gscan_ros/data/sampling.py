@@ -1,4 +1,4 @@
-"""Situation sampling as the gSCAN generator does it (GSCAN_SPEC §1.3, §1.4).
+"""Situation sampling as the gSCAN generator does it (LauraRuis/groundedSCAN `dataset.py`).
 
 Two stages, as in the original `generate_situations` / `initialize_world_from_spec`:
 
@@ -11,7 +11,7 @@ Two stages, as in the original `generate_situations` / `initialize_world_from_sp
    strictly larger for "small", strictly smaller for "big", and one such comparison
    object is obligatory; a fraction (0.5) of the remaining distractor groups is placed.
 
-Everything iterates in fixed tuple orders (quirk Q18) and draws from a numpy
+Everything iterates in fixed tuple orders (quirk Q18, docs/model.md) and draws from a numpy
 Generator in whole blocks, so a seed alone fixes the output and sampling stays cheap.
 """
 from __future__ import annotations

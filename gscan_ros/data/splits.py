@@ -1,4 +1,4 @@
-"""Split assignment: hold-out rules B-H, random test/dev, de-duplication, k-shot (GSCAN_SPEC §7).
+"""Split assignment: hold-out rules B-H, random test/dev, de-duplication, k-shot (LauraRuis/groundedSCAN `dataset.py`).
 
 The rules only look at the command, the target object and the direction to the
 target, so they are decided before an example is planned; examples matching more than
@@ -31,7 +31,7 @@ class HoldOutRule:
     holds_out: Callable[[Command, ObjectSpec, str], bool]
 
 
-# GSCAN_SPEC §7.1. B needs "yellow" in the command; F tests no color (the original
+# groundedSCAN `dataset.py` `assign_splits`. B needs "yellow" in the command; F tests no color (the original
 # comment says "red square" but the code does not check it).
 HOLD_OUT_RULES: tuple[HoldOutRule, ...] = (
     HoldOutRule("B", "visual_easier", "yellow square target referred to with 'yellow'",
@@ -127,7 +127,7 @@ def assign_compositional(rng: np.random.Generator, labels: np.ndarray, keys: np.
 def assign_length(rng: np.random.Generator, lengths: np.ndarray, keys: np.ndarray, cut_off: int,
                   percentage_train: float, percentage_dev: float) -> SplitResult:
     """Split I: target length > cut_off goes to `target_lengths`; random test and dev
-    are drawn from the rest (the released key layout, quirk Q13)."""
+    are drawn from the rest (the released key layout, quirk Q13, docs/model.md)."""
     indices = np.arange(len(lengths))
     long = indices[lengths > cut_off]
     train, test = take_fraction(rng, indices[lengths <= cut_off], 1.0 - percentage_train)

@@ -1,7 +1,7 @@
 """Constituency parser: the English phrase-structure tree (paper Fig. 2a) as a CommandGraph.
 
 The chart parse of `phrase_grammar()` is reduced like the original's walk over its
-ELMo parser's tree (GSCAN_SPEC §8.3): S and determiners/prepositions are skipped, a PP
+ELMo parser's tree (ylkuo/compositional-gscan `language/parse.py`): S and determiners/prepositions are skipped, a PP
 stands for its object NP, a clause adverb (SBAR, "while spinning") or ADVP is one leaf
 named by its text. Phrases become modules keyed by label and arity ("VP_3", "NP_2");
 words are arity-0 leaves keyed by word (or lexicon concept). Arc label = the child's

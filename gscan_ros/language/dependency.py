@@ -5,7 +5,7 @@ other child's head word depends on it with a label fixed by the pair of categori
 the classic constituency-to-dependency conversion. This gives what an English UD
 parser gives for gSCAN commands: the verb is the root, the noun its `obj` (push/pull)
 or `obl` (walk to), adjectives `amod`, "cautiously" `advmod`, "while spinning"
-`advcl`; function words (`det`, `case`) are dropped as in the original (GSCAN_SPEC §8.3).
+`advcl`; function words (`det`, `case`) are dropped as in the original (ylkuo/compositional-gscan `language/parse.py`).
 
 `graph_from_dependencies` turns any (words, heads, labels) analysis into a graph, so a
 plugged-in spaCy/Stanza parser can share the conventions: one module per (word, arity),

@@ -1,6 +1,6 @@
 """The gSCAN command language as two nltk CFGs over gSCAN tokens, and the 675 commands.
 
-- `gscan_grammar()` restates the generator's grammar (GSCAN_SPEC §5.1): ROOT -> VP,
+- `gscan_grammar()` restates the generator's grammar (LauraRuis/groundedSCAN `grammar.py`): ROOT -> VP,
   VP -> VP RB (once), VP -> VV_intrans 'to' DP | VV_trans DP, DP -> 'a' NP,
   NP -> JJ NP | NN. gSCAN limits NP -> JJ NP to two uses, never repeats an adjective
   category and puts colors before sizes; those limits are written into the rules
@@ -11,7 +11,7 @@
   NP and VP as in the paper's Fig. 2a). Preterminals use Penn tags with a hyphenated
   subcategory ("JJ-COLOR"); the part before the hyphen is the tag.
 
-Both are built with `CFG.fromstring` from the vocabulary tables (quirk Q5: the original
+Both are built with `CFG.fromstring` from the vocabulary tables (quirk Q5, docs/model.md: the original
 loaded a grammar file through `nltk.data.load`, which nltk 3.10 refuses).
 """
 from __future__ import annotations

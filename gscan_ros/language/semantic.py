@@ -3,7 +3,7 @@
 The command must be a sentence of gSCAN's own grammar; its content words (function
 words 'to'/'a' are bare terminals and drop out) are nested predicate over argument:
 adverb over verb over color over size over noun, e.g.
-`while spinning(walk(red(small(circle))))` (GSCAN_SPEC §8.3, the original's
+`while spinning(walk(red(small(circle))))` (ylkuo/compositional-gscan `language/grammar.py`:
 `to_arg_tree` + `reorg_arg_tree`). Root = the adverb, else the verb; every word has
 arity 1 except the noun (0); word modules are keyed by word (or lexicon concept).
 

@@ -1,6 +1,6 @@
 """Command text -> gSCAN tokens, with one-line errors for anything that is not gSCAN.
 
-gSCAN has 18 tokens (GSCAN_SPEC §5.3); the two-word adverbs "while spinning" and
+gSCAN has 18 tokens (Ruis et al. 2020); the two-word adverbs "while spinning" and
 "while zigzagging" are single tokens. The tokenizer is tolerant of case, punctuation
 and the dataset's comma separators ("Walk, to a RED circle!" works), but strict about
 words: an unknown word is reported with its closest known words. `canonical.canonicalize`

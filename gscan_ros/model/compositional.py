@@ -1,6 +1,7 @@
 """The compositional network of Kuo, Katz & Barbu (2021) as the paper describes it.
 
-GSCAN_SPEC §8 is the reference; the paper is §3 of `kuo2021_compositional_gscan.tex`.
+References: the paper's §3 and its code, ylkuo/compositional-gscan `model.py` ("CG"; docs/architecture.md,
+References).
 Every word w of a parse is a module with its own GRU; at time step t, bottom-up,
 
     att_t^w       = softmax_cells(MLP(h_{t-1}^w, obs_t ⊙ att_t^{c_1}, ..., obs_t ⊙ att_t^{c_n}))
@@ -54,7 +55,7 @@ class ModelConfig(SerializableConfig):
     grid_size: int = GRID_SIZE
     """Side of the square grid; the CNN keeps it ('same' padding), 36 cells for gSCAN."""
     in_channels: int = NUM_CHANNELS
-    """Channels of the one-hot observation (16 in the released order, GSCAN_SPEC §4)."""
+    """Channels of the one-hot observation (16 in the released order, LauraRuis/groundedSCAN `Grid.encode`)."""
     cnn_kernels: tuple[int, ...] = (1, 5, 7)
     """Kernel sizes of the parallel conv branches (CG: 1, 5 and `cnn_kernel_size` 7)."""
     cnn_channels: int = 50
@@ -73,8 +74,8 @@ class ModelConfig(SerializableConfig):
     antonym_weight: float = 1.0
     """Weight of the antonym overlap loss (CG `compare_weight`); 0 disables the term."""
     attention_state: str = "broadcast"
-    """How a module's previous state enters its attention MLP. 'broadcast' (GSCAN_SPEC
-    §8.4): projected, concatenated after the arguments' projections and broadcast over the
+    """How a module's previous state enters its attention MLP. 'broadcast' (CG's
+    `AttentionArgN`): projected, concatenated after the arguments' projections and broadcast over the
     cells, where it cancels in the softmax. 'add': added to every argument's projection
     before the ReLU, so the module's own state shapes its map (one reading of the paper's
     "mapped to the same dimension before being combined"). Same parameters either way;
@@ -82,7 +83,7 @@ class ModelConfig(SerializableConfig):
     size_map: str = "softmax"
     """The map an antonym-pair module (big|small) passes to its parent: its 'softmax'
     attention (this project's default), or 'minmax': the min-max normalised map of the
-    overlap loss, as the original code passes it (GSCAN_SPEC §8.6, quirk Q16) and as the
+    overlap loss, as the original code passes it (CG `SentenceNetwork.loss`; quirk Q16, docs/model.md) and as the
     published numbers were produced."""
     num_actions: int = len(Action)
     """Output classes: the six gSCAN actions plus EOS, ids = `Action` values."""
@@ -410,7 +411,7 @@ class CompositionalNetwork(nn.Module):
         feature projection, weighted here by the child's map `cmaps` [n, k, S, cells].
         The hidden-state input (`att_state_*`, its `att_out_w` column and `att_out_b`) is
         broadcast over the cells, so it adds the same constant to every cell's logit and
-        cancels in the softmax: it is not computed (GSCAN_SPEC §8.4's maps are exactly
+        cancels in the softmax: it is not computed (CG's `AttentionArgN` maps are exactly
         the same). With attention_state='add', `state` [n, k, A] (h W_h + b_h) is added to
         every argument's projection before the ReLU instead.
         """
@@ -425,14 +426,14 @@ class CompositionalNetwork(nn.Module):
     @staticmethod
     def passed_maps(maps: torch.Tensor, passes_minmax: torch.Tensor | None) -> torch.Tensor:
         """The maps [n, k, cells] the slots pass on: with size_map='minmax', antonym-pair
-        slots pass their min-max normalised map (quirk Q16); otherwise the softmax maps."""
+        slots pass their min-max normalised map (quirk Q16, docs/model.md); otherwise the softmax maps."""
         if passes_minmax is None:
             return maps
         return torch.where(passes_minmax[..., None], minmax_normalize(maps), maps)
 
     @staticmethod
     def overlap(maps: torch.Tensor, antonym_pairs: torch.Tensor, pair_mask: torch.Tensor) -> torch.Tensor:
-        """Σ_cells(minmax(map_word) * minmax(map_antonym)) / cells per row (GSCAN_SPEC §8.6)."""
+        """Σ_cells(minmax(map_word) * minmax(map_antonym)) / cells per row (CG `SentenceNetwork.loss`)."""
         n, P, _ = antonym_pairs.shape
         cells = maps.shape[-1]
         sel = maps.gather(1, antonym_pairs.reshape(n, 2 * P, 1).expand(-1, -1, cells)).view(n, P, 2, cells)
@@ -445,7 +446,8 @@ class CompositionalNetwork(nn.Module):
     def active_rows_multiple(self) -> int:
         """What `EpisodeStore.batch` rounds the number of rows alive per step up to: the
         step-by-step path re-slices per-row tensors whenever that number changes (8: few
-        changes, ~10% padded steps); the all-steps path has no such cost, so no padding."""
+        changes, few padded steps; docs/results.md "Why these fast paths"); the all-steps
+        path has no such cost, so no padding."""
         return 8 if self.cfg.runs_every_gru else 1
 
     def forward(self, batch: TeacherBatch) -> TeacherOutput:
@@ -461,7 +463,7 @@ class CompositionalNetwork(nn.Module):
 
     def loss(self, batch: TeacherBatch, logits: torch.Tensor, overlap: torch.Tensor) -> TeacherOutput:
         """Per example (Σ_t NLL + antonym_weight · Σ_t overlap) / (T+1), mean over the batch
-        (GSCAN_SPEC §8.6); padded steps add nothing (quirk Q4)."""
+        (CG `SentenceNetwork.loss`); padded steps add nothing (quirk Q4, docs/model.md)."""
         valid = batch.valid.float()
         nll = F.cross_entropy(logits, batch.targets.clamp(min=0), reduction="none") * valid
         overlap = overlap * valid
@@ -472,7 +474,7 @@ class CompositionalNetwork(nn.Module):
 
 def minmax_normalize(maps: torch.Tensor) -> torch.Tensor:
     """Each map (last dim = cells) scaled to [0, 1] (a flat map divides by 1), + 1e-5,
-    clipped to [0, 1]: the original's normalisation of size-word maps (GSCAN_SPEC §8.6)."""
+    clipped to [0, 1]: the original's normalisation of size-word maps (CG `SentenceNetwork.loss`)."""
     lo, hi = maps.amin(-1, keepdim=True), maps.amax(-1, keepdim=True)
     rng = hi - lo
     return ((maps - lo) / torch.where(rng > 0, rng, torch.ones_like(rng)) + 1e-5).clamp(0.0, 1.0)

@@ -17,11 +17,11 @@ def keep_mask(size: int, p: float, device: torch.device | str = "cpu") -> tuple[
     exact p it drops with (a multiple of 2^-16).
 
     On the CPU, 16-bit draws are cut from the raw 64-bit words of numpy's PCG64, seeded
-    from torch's generator (so `torch.manual_seed` still fixes it): ~15x faster than
-    `bernoulli_` on the 20M-element feature tensors. The bool result is viewed as uint8 at
-    no cost, and multiplying by uint8 is faster than `where` or `masked_fill` with a bool
-    mask. On another device the 16-bit draws come from that device's torch generator, so
-    the mask never crosses from the host.
+    from torch's generator (so `torch.manual_seed` still fixes it), far faster than
+    `bernoulli_` on the feature tensors. The bool result is viewed as uint8 at no cost,
+    and multiplying by uint8 beat `where` or `masked_fill` with a bool mask (figures:
+    docs/results.md "Why these fast paths"). On another device the 16-bit draws come
+    from that device's torch generator, so the mask never crosses from the host.
     """
     cut = round(p * _DROP_LEVELS)
     if torch.device(device).type != "cpu":

@@ -61,7 +61,7 @@ class Layout:
             lo += w
         B, J = len(graphs), lo
         self.batch, self.num_slots = B, J
-        # Filled in numpy (element writes to torch tensors cost ~50x more), converted once.
+        # Filled in numpy (element writes to torch tensors are far slower: docs/results.md), converted once.
         unit = np.zeros((B, J), dtype=np.int64)
         module = np.zeros((B, J), dtype=np.int64)
         children = np.zeros((B, J, S), dtype=np.int64)

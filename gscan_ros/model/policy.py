@@ -22,6 +22,10 @@ from gscan_ros.model.runtime import resolve_device
 from gscan_ros.world.types import NUM_CHANNELS, Action
 
 DEFAULT_CHECKPOINT = "default_model.pt"
+# Actions per episode before <eos> is forced: decoding runs at most MAX_STEPS + 1 steps (121,
+# the original's `max_decoding_steps`). The one definition: evaluation, explain, policy_node
+# (and so bringup/demo) take it from here; config/params.yaml repeats it under test.
+MAX_STEPS = 120
 
 
 def default_checkpoint_path() -> Path:

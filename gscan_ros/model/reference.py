@@ -1,6 +1,7 @@
 """The compositional network one graph, one node, one step at a time: the test oracle.
 
-A plain reading of the paper (§3) and GSCAN_SPEC §8.4-8.6 with none of the fast paths:
+A plain reading of the paper (Kuo et al. 2021, §3) and its code (ylkuo/compositional-gscan `model.py`), with
+none of the fast paths:
 dense convolution, every node's full attention MLP (the hidden-state term included),
 every node's GRU, no batching. It holds no parameters of its own; it reads those of a
 `CompositionalNetwork`, so the two share a state_dict and gradients land on the same
@@ -101,8 +102,9 @@ class ReferenceNetwork:
 
     def attention(self, module: str, head: int, obs: torch.Tensor, args: list[torch.Tensor],
                   h_prev: torch.Tensor) -> torch.Tensor:
-        """softmax over cells of Linear(ReLU([obs ⊙ att_s) W_s + b_s]_s ++ [h W_h + b_h])) (GSCAN_SPEC §8.4);
-        with attention_state='add' the state's projection is also added to each argument's."""
+        """softmax over cells of Linear(ReLU([obs ⊙ att_s) W_s + b_s]_s ++ [h W_h + b_h]))
+        (`AttentionArgN` in CG's `model.py`); with attention_state='add' the state's
+        projection is also added to each argument's."""
         bank = self.bank
         unit = self.table.unit_base[module] + head
         state = h_prev @ bank.att_state_w[unit] + bank.att_state_b[unit]  # [A]
@@ -117,7 +119,7 @@ class ReferenceNetwork:
 
     def passed(self, module: str, att: torch.Tensor) -> torch.Tensor:
         """The map a node passes on: min-max normalised for an antonym-pair module with
-        size_map='minmax' (quirk Q16), else the softmax map itself."""
+        size_map='minmax' (quirk Q16, docs/model.md), else the softmax map itself."""
         if self.cfg.uses_attention and self.cfg.size_map == "minmax" and self.table.spec(module).antonyms:
             return minmax_normalize(att)
         return att

@@ -1,4 +1,4 @@
-"""The gSCAN seq2seq baseline (Ruis et al. 2020; GSCAN_SPEC §9), in the same framework.
+"""The gSCAN seq2seq baseline (Ruis et al. 2020; LauraRuis/multimodal_seq2seq_gSCAN), in the same framework.
 
 Command: embedding -> 1-layer BiLSTM (directions summed). World: the same 3-branch CNN,
 on the *initial* state only (the baseline never sees later states). Decoder: an LSTM

@@ -6,6 +6,12 @@ conv weights once per call, against which a state's features are the sum of the 
 its ~20 set bits (of 576 on 6x6), about 20x fewer multiply-adds than the dense conv.
 `VisualEncoder.dense` (compositional.py) is the plain Conv2d form; the two agree to float
 rounding (tests/test_model_reference.py, tests/test_model_fastpaths.py).
+
+On larger grids the Toeplitz matrix grows as cells^2 (50M entries on 12x12), and building
+it and its gradient on every training update costs more than the features themselves.
+There, training sums rows of the kernel canvas instead: one bag per (state, output cell)
+over the canvas rows that link each set bit to that cell, so the weight and its gradient
+stay the size of the conv kernels. Closed loop keeps the cached Toeplitz matrix.
 """
 from __future__ import annotations
 
@@ -15,6 +21,10 @@ import torch.nn.functional as F
 from torch import nn
 
 from gscan_ros.model.fast_ops import ReluDrop, keep_mask
+
+# Training on grids this wide or wider uses per-cell canvas bags instead of the Toeplitz
+# matrix (docs/results.md, "Sparse encoder on 12x12": equal at 6x6 with 50 episodes).
+PER_CELL_MIN_GRID = 8
 
 
 class SparseConv:
@@ -36,10 +46,16 @@ class SparseConv:
         pairs = offset.numel()
         # [(q, p), canvas position] 0/1: the Toeplitz matrix is this times the canvas, a
         # sparse matmul in both directions (an indexing gather would backprop through a
-        # serial accumulating index_put, ~5x slower).
+        # serial accumulating index_put, several times slower: docs/results.md).
         self._placement = torch.sparse_coo_tensor(torch.stack([torch.arange(pairs), offset]), torch.ones(pairs),
                                                   (pairs, (2 * g - 1) ** 2), check_invariants=True).coalesce()
         self._cache_key, self._cache = None, None
+        # Input bit (cell q, channel k) -> for every output cell p, its row (offset(q, p), k) in
+        # the flattened canvas; the last bit (cells*C) is the bias, row (2g-1)^2*C for every p.
+        canvas_rows = offset.view(self.cells, 1, self.cells) * in_channels + torch.arange(in_channels).view(1, -1, 1)
+        bias_row = torch.full((1, self.cells), (2 * g - 1) ** 2 * in_channels)
+        self._canvas_rows = torch.cat([canvas_rows.reshape(-1, self.cells), bias_row])
+        self.per_cell = grid_size >= PER_CELL_MIN_GRID
 
     def _kernel_bank(self, convs: nn.ModuleList) -> torch.Tensor:
         """All branches' weights centred on a (2g-1)^2 canvas: [F, C, 2g-1, 2g-1]."""
@@ -54,6 +70,53 @@ class SparseConv:
                 cut = half - (g - 1)
                 out.append(w[:, :, cut : cut + 2 * g - 1, cut : cut + 2 * g - 1])
         return torch.cat(out, 0)
+
+    def canvas_weight(self, convs: nn.ModuleList, scale: float = 1.0) -> torch.Tensor:
+        """[(2g-1)^2*C + 1, F]: the kernel canvas, row (position, channel k), plus the bias
+        row; all times `scale`."""
+        bank = self._kernel_bank(convs)  # [F, C, 2g-1, 2g-1]
+        canvas = bank.permute(2, 3, 1, 0).reshape(-1, bank.shape[0])
+        weight = torch.cat([canvas, torch.cat([conv.bias for conv in convs])[None]])
+        return weight * scale if scale != 1.0 else weight
+
+    def per_cell_bags(self, bits: torch.Tensor, offsets: torch.Tensor,
+                      extra: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Bags of input bits (one per state) -> one bag of canvas rows per (state, output
+        cell), state-major; `extra` [n, cells] (optional) is put first in each bag."""
+        n, cells, device = offsets.numel(), self.cells, bits.device
+        if self._canvas_rows.device != device:
+            self._canvas_rows = self._canvas_rows.to(device)
+        counts = torch.diff(offsets, append=torch.tensor([bits.numel()], device=device))
+        state = torch.repeat_interleave(torch.arange(n, device=device), counts)
+        ext = 0 if extra is None else 1
+        first = (offsets + ext * torch.arange(n, device=device)) * cells  # bag of (state, cell 0)
+        starts = first[:, None] + torch.arange(cells, device=device)[None, :] * (counts + ext)[:, None]
+        rows = torch.empty(bits.numel() * cells + ext * n * cells, dtype=torch.long, device=device)
+        within = torch.arange(bits.numel(), device=device) - offsets[state] + ext  # place in its bags
+        rows[(starts[state] + within[:, None]).view(-1)] = self._canvas_rows[bits].view(-1)
+        if extra is not None:
+            rows[starts.view(-1)] = extra.reshape(-1)
+        return rows, starts.view(-1)
+
+    def _per_cell(self, convs: nn.ModuleList, indices: torch.Tensor, offsets: torch.Tensor,
+                  groups: torch.Tensor | None, scale: float) -> torch.Tensor:
+        """The pre-activation features [n*cells, F] from canvas bags (see the module docstring)."""
+        weight = self.canvas_weight(convs, scale)
+        bias_bit, n = self.cells * self.in_channels, offsets.numel()
+        if groups is None:
+            bits, starts = _with_extra_index(indices, offsets, torch.full((n,), bias_bit, device=indices.device))
+            rows, starts = self.per_cell_bags(bits, starts)
+            return F.embedding_bag(rows, weight, starts, mode="sum")
+        (shared, shared_offsets), own, own_offsets = shared_bits(indices, offsets, groups, bias_bit + 1)
+        rows, starts = self.per_cell_bags(shared, shared_offsets)
+        group_sums = F.embedding_bag(rows, weight, starts, mode="sum")  # [groups*cells, F]
+        # Each (state, cell) bag: the state's own bits + its group's sum at that cell (rows
+        # appended to the weight), or the bias row for a state without a group.
+        cells = torch.arange(self.cells, device=indices.device)
+        extra = torch.where((groups >= 0)[:, None], weight.shape[0] + groups[:, None] * self.cells + cells,
+                            weight.shape[0] - 1)
+        rows, starts = self.per_cell_bags(own, own_offsets, extra)
+        return F.embedding_bag(rows, torch.cat([weight, group_sums]), starts, mode="sum")
 
     def toeplitz(self, convs: nn.ModuleList, scale: float = 1.0) -> torch.Tensor:
         """[cells*C, cells*F]: row (cell q, channel k) -> contribution to every (cell p, feature o),
@@ -100,10 +163,15 @@ class SparseConv:
         [N, cells, F] features are the largest tensors of a batch and memory-bound.
         """
         n = offsets.numel()
-        keep = None
+        keep, scale = None, 1.0
         if dropout > 0:
             keep, p = keep_mask(n * self.cells * self.feature_dim, dropout, indices.device)
-            weight = self.weight(convs, 1.0 / (1.0 - p))
+            scale = 1.0 / (1.0 - p)
+        if self.per_cell and torch.is_grad_enabled():
+            flat = ReluDrop.apply(self._per_cell(convs, indices, offsets, groups, scale), keep)
+            return flat.view(n, self.cells, self.feature_dim)
+        if dropout > 0:
+            weight = self.weight(convs, scale)
         else:
             weight = self.weight(convs) if torch.is_grad_enabled() else self._inference_weight(convs)
         bias_row = self.cells * self.in_channels

@@ -124,7 +124,7 @@ def _root_gru_logits(bank: "WordModuleBank", x: torch.Tensor, batch: TeacherBatc
     then the recurrence over time for all rows together, each row with its module's
     recurrent weights gathered once ([B, H, 3H], small). The rows alive at step t are
     a prefix (rows sorted by length), so a step works on prefix slices. (One `aten::gru`
-    call per root module with packed sequences was 2.5x slower in total.)
+    call per root module with packed sequences was slower in total: docs/results.md.)
     """
     H = bank.cfg.rnn_dim
     step_module = root_module.index_select(0, batch.rows)

@@ -1,6 +1,6 @@
 """What the gscan_ros nodes share: topic names and QoS from the interface table, the status channel, `run()`.
 
-Topic names are relative (DESIGN.md "ROS interface"), so a whole stack can be pushed
+Topic names are relative (docs/ros.md), so a whole stack can be pushed
 into a namespace with `--ros-args -r __ns:=/robot1`. Names, types and offered QoS come
 from `gscan_ros.interface` (plain data, shared with the bag code); this module turns
 them into rclpy QoSProfiles.
@@ -120,8 +120,8 @@ class StatusReporter:
     Lines are prefixed with the node name and capped at STATUS_CHARS, so an error that
     quotes a 10 kB input still yields one short line. Every rejection is published, but
     at most one per WARNING_INTERVAL_S is logged as a warning (the others at debug
-    level, counted in the next warning): rclpy's logger costs ~0.5 ms a call, which a
-    flood of bad input must not multiply.
+    level, counted in the next warning): rclpy's logger is slow per call (docs/results.md),
+    and a flood of bad input must not multiply that.
     """
 
     def __init__(self, node: Node) -> None:

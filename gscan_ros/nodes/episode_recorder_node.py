@@ -1,6 +1,6 @@
 """episode_recorder_node: records the episodes of the live stack into a gscan_ros bag.
 
-The bag is the dataset format (rosbag2 layout, MCAP, DESIGN.md "Bags"), so a recorded
+The bag is the dataset format (rosbag2 layout, MCAP, docs/bags.md), so a recorded
 run can be replayed, evaluated or trained on like a generated dataset. Messages are
 buffered with their DDS source timestamps (actions with their publisher's sequence
 number); `episode_log` cuts them into lock-step episodes: complete at the episode's own

@@ -22,7 +22,7 @@ from gscan_ros import interface
 from gscan_ros.errors import CommandError, GscanError
 from gscan_ros.language.canonical import canonicalize
 from gscan_ros.language.parser import Parser
-from gscan_ros.language.registry import get_parser
+from gscan_ros.language.registry import BUILTIN_PARSERS, get_parser
 from gscan_ros.language.synonyms import synonym_table
 from gscan_ros.language.tokens import command_text
 from gscan_ros.model.checkpoint import checkpoint_lexicon, read_checkpoint
@@ -40,8 +40,6 @@ from gscan_ros.nodes.common import (
 )
 from msg_adapters import cdr_to_string_bytes, graph_to_msg
 
-PARSERS = ("semantic", "constituency", "dependency")
-
 
 class ParserNode(Node):
     def __init__(self, **kwargs) -> None:
@@ -52,7 +50,7 @@ class ParserNode(Node):
         )
         self.declare_parameter(
             "parser", "", describe("parse type; empty: the checkpoint's (the policy rejects graphs of another parser)",
-                                   constraints=f"empty or one of: {', '.join(PARSERS)}")
+                                   constraints=f"empty or one of: {', '.join(BUILTIN_PARSERS)}")
         )
         self.declare_parameter(
             "max_command_chars", 1000, describe("longer commands are rejected unparsed", int_range=(1, 1_000_000))
@@ -74,8 +72,8 @@ class ParserNode(Node):
         """The parser that `checkpoint` and `parser` (with `changes` applied) name, and its name."""
         checkpoint = changes.get("checkpoint", self.get_parameter("checkpoint").value)
         name = changes.get("parser", self.get_parameter("parser").value)
-        if name and name not in PARSERS:
-            raise CommandError(f"parser must be empty or one of {', '.join(PARSERS)}, got {name!r}")
+        if name and name not in BUILTIN_PARSERS:
+            raise CommandError(f"parser must be empty or one of {', '.join(BUILTIN_PARSERS)}, got {name!r}")
         ckpt = read_checkpoint(checkpoint or default_checkpoint_path())
         name = name or str(ckpt["parser"])
         return get_parser(name, checkpoint_lexicon(ckpt)), name

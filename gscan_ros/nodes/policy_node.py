@@ -27,6 +27,7 @@ from std_msgs.msg import Header, String, UInt8MultiArray
 from gscan_ros import interface
 from gscan_ros.errors import GscanError
 from gscan_ros.language.graph import CommandGraph
+from gscan_ros.model.policy import MAX_STEPS
 from gscan_ros.model.runtime import configure_torch
 from gscan_ros.nodes.common import (
     ACTION,
@@ -58,7 +59,7 @@ class PolicyNode(Node):
                                        "loads it, for the next command; a bad one is refused)")
         )
         self.declare_parameter(
-            "max_steps", 120, describe("actions per episode before <eos> is forced (read at each episode start)",
+            "max_steps", MAX_STEPS, describe("actions per episode before <eos> is forced (read at each episode start)",
                                        int_range=(1, 100_000))
         )
         self.declare_parameter(

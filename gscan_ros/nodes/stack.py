@@ -14,12 +14,14 @@ from pathlib import Path
 from gscan_ros.errors import GscanError
 from gscan_ros.world.types import GRID_SIZE
 
-DEFAULT_MAX_STEPS = 120
-
 
 @dataclass(frozen=True)
 class StackOptions:
-    """What `gscan-ros bringup` / `demo` set; each field becomes a node parameter."""
+    """What `gscan-ros bringup` / `demo` set; each field becomes a node parameter.
+
+    `max_steps` None keeps policy_node's default (`gscan_ros.model.policy.MAX_STEPS`), named
+    there only: importing it here would load torch into every `gscan-ros` command line.
+    """
 
     checkpoint: Path | None = None
     parser: str = ""
@@ -28,7 +30,7 @@ class StackOptions:
     index: int = 0
     seed: int = 0
     grid_size: int = GRID_SIZE
-    max_steps: int = DEFAULT_MAX_STEPS
+    max_steps: int | None = None
     record: Path | None = None
     record_images: bool = False
     overwrite: bool = False
@@ -76,7 +78,8 @@ class Stack:
             grid_size=o.grid_size,
         )))
         self.nodes.append(ParserNode(parameter_overrides=_params(checkpoint=checkpoint, parser=o.parser)))
-        self.nodes.append(PolicyNode(parameter_overrides=_params(checkpoint=checkpoint, max_steps=o.max_steps)))
+        cap = {} if o.max_steps is None else {"max_steps": o.max_steps}
+        self.nodes.append(PolicyNode(parameter_overrides=_params(checkpoint=checkpoint, **cap)))
         if o.record is not None:
             from gscan_ros.nodes.episode_recorder_node import EpisodeRecorderNode
 

@@ -1,11 +1,11 @@
 """Teacher-forcing data: parse graphs, a compact per-dataset state cache, batch samplers.
 
 Teacher forcing needs all T+1 world states of every episode (initial + after each gold
-action, GSCAN_SPEC §8.2). They are replayed once per dataset through the one World
-physics (`Episode.states()`) or read from a bag's decode-once cache, and kept as the
-*set-bit indices* of each one-hot state (int16, ~20 per state instead of 576 bytes,
-~40 bytes per state), which is both the cache and the direct input of the sparse
-visual encoder.
+action, as the data pipeline of ylkuo/compositional-gscan builds them). They are
+replayed once per dataset through the one World physics (`Episode.states()`) or read
+from a bag's decode-once cache, and kept as the *set-bit indices* of each one-hot
+state (int16, ~20 per state instead of 576 bytes, ~40 bytes per state), which is both
+the cache and the direct input of the sparse visual encoder.
 """
 from __future__ import annotations
 
@@ -152,7 +152,7 @@ def batch_order(store: EpisodeStore, batch_size: int, batching: str, rng: np.ran
     """One epoch of batches.
 
     mixed: a random permutation cut into batches (graphs of any commands mixed).
-    per_command: the original scheme (GSCAN_SPEC §8.2, quirk Q9) — batches hold one command,
+    per_command: the original scheme (CG; quirk Q9, docs/model.md) — batches hold one command,
     each command's episodes reshuffled every epoch (the original fixed chunk contents
     after one initial shuffle), then the order of all chunks shuffled.
     """

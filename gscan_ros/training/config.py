@@ -38,10 +38,10 @@ def read_yaml(path: str | Path, what: str, error: type[GscanError]):
 
 @dataclass
 class TrainConfig:
-    """Training run settings (defaults: the original's, GSCAN_SPEC §8.7, unless noted)."""
+    """Training run settings (defaults: the original's, ylkuo/compositional-gscan `configs/`, unless noted)."""
 
     model_kind: str = "compositional"
-    """'compositional' (Kuo et al.) or 'seq2seq' (the gSCAN baseline, GSCAN_SPEC §9)."""
+    """'compositional' (Kuo et al.) or 'seq2seq' (the gSCAN baseline, LauraRuis/multimodal_seq2seq_gSCAN)."""
     model: dict = field(default_factory=dict)
     """Overrides of the model config's fields (see ModelConfig / Seq2SeqConfig docstrings)."""
     parser: str = DEFAULT_PARSER
@@ -50,7 +50,7 @@ class TrainConfig:
     """'wordnet': share modules between WordNet-related words (big/small); 'none': no sharing."""
     batching: str = "mixed"
     """'mixed': batches mix commands (one pass over many graphs); 'per_command': the
-    original one-command-per-batch scheme (quirk Q9)."""
+    original one-command-per-batch scheme (quirk Q9, docs/model.md)."""
     batch_size: int = 200
     """Episodes per update."""
     lr: float = 1e-3
@@ -86,7 +86,7 @@ class TrainConfig:
     validate_every: int = 500
     """Updates between validations (closed-loop exact match on the dev subset)."""
     max_dev_examples: int = 500
-    """Cap on dev episodes per validation (quirk Q1: the original ignored its cap of 2000);
+    """Cap on dev episodes per validation (quirk Q1, docs/model.md: the original ignored its cap of 2000);
     a fixed, seeded subset. 0 = the whole dev split."""
     eval_batch_size: int = 1024
     """Episodes decoded together in closed-loop validation."""

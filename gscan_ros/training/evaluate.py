@@ -1,4 +1,4 @@
-"""Batched closed-loop evaluation and the gSCAN metrics (GSCAN_SPEC §8.5, §10).
+"""Batched closed-loop evaluation and the gSCAN metrics (ylkuo/compositional-gscan `predict.py`).
 
 The model acts, the one `World` executes, the new state is encoded and fed back — for
 many episodes at once: one batched forward over every live episode per decoding step,
@@ -20,12 +20,10 @@ from tqdm import tqdm
 from gscan_ros.data.episode import Episode
 from gscan_ros.data.splits import SPLIT_LETTERS
 from gscan_ros.errors import GscanError, InvalidActionError
-from gscan_ros.model.policy import Policy
+from gscan_ros.model.policy import MAX_STEPS, Policy
 from gscan_ros.training.distributed import Ranks, shard_of
 from gscan_ros.world.types import ADVERBS, COLORS, SIZE_ADJECTIVES, TRANSITIVE_VERBS, Action
 from gscan_ros.world.world import World
-
-MAX_STEPS = 120
 
 
 def token_accuracy(predicted: Sequence, gold: Sequence) -> float:
@@ -66,7 +64,7 @@ class EvalResult:
             preds = by_split[split]
             by_len: dict[int, list[Prediction]] = defaultdict(list)
             for p in preds:
-                by_len[len(p.episode.actions)].append(p)  # quirk Q8: each failure counts for its own length
+                by_len[len(p.episode.actions)].append(p)  # each failure at its own length (quirk Q8)
             out[split] = {
                 "letter": SPLIT_LETTERS.get(split, ""),
                 "examples": len(preds),

@@ -26,8 +26,7 @@ from gscan_ros.data.episode import Episode
 from gscan_ros.data.splits import SPLIT_LETTERS
 from gscan_ros.errors import GscanError, InvalidActionError
 from gscan_ros.language.graph import CommandGraph
-from gscan_ros.model.policy import Policy
-from gscan_ros.training.evaluate import MAX_STEPS
+from gscan_ros.model.policy import MAX_STEPS, Policy
 from gscan_ros.world import CommandFrame, World, resolve_target
 from gscan_ros.world.types import NOUNS, SIZE_ADJECTIVES, VERBS, Action, Situation, WorldObject
 

@@ -1,14 +1,14 @@
 """The published figures `gscan-ros report` sets beside ours: exact match % as mean and
 standard deviation over three runs, transcribed from Kuo, Katz & Barbu (2021),
 "Compositional Networks Enable Systematic Generalization for Grounded Language
-Understanding" (shared/paper/kuo2021_compositional_gscan.tex).
+Understanding", Findings of EMNLP 2021, pp. 216-226, arXiv:2008.02742.
 
 - `TABLE1`: Table 1 (`\\label{res:composition}`), splits A-H, the columns we reproduce
   (GECA, AuxLoss and LCGN are left out). A missing row is a "-" in the paper.
 - `TABLE2`: Table 2 (`\\label{res:longseq}`), split I by target length, keyed by
   (column, longest target length trained on).
 - `K_SHOT_LABELS`: the paper's G-row label for the number of "cautiously" examples in
-  train (GSCAN_SPEC §7.3, quirk Q10: its k=10 and k=50 runs had 11 and 51).
+  train (quirk Q10, docs/model.md: its k=10 and k=50 runs had 11 and 51).
 
 A figure is (mean, std), or a string where the paper prints a bound ("< 1").
 """

@@ -18,7 +18,8 @@ def markdown_table(summary: dict, title: str = "") -> str:
 
 
 def prediction_records(result: EvalResult):
-    """gSCAN prediction-file entries (GSCAN_SPEC §6.2), CG variant: `attention_weights` is a
+    """gSCAN prediction-file entries (the format of LauraRuis/groundedSCAN's
+    `example_prediction.json`), CG variant: `attention_weights` is a
     dict word -> one 36-value map per decoding step."""
     for p in result.predictions:
         ep = p.episode

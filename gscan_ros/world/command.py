@@ -1,4 +1,4 @@
-"""The gSCAN command frame: verb, manner and referring expression (GSCAN_SPEC §5).
+"""The gSCAN command frame: verb, manner and referring expression (LauraRuis/groundedSCAN `grammar.py`, `LogicalForm`).
 
 This is the planner's minimal reading of a command. `split_command` accepts the
 dataset's comma-joined form and plain space-joined text; the user-facing

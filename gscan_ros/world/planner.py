@@ -1,10 +1,10 @@
-"""Ground-truth demonstrations (GSCAN_SPEC §3), executed through `World`.
+"""Ground-truth demonstrations (LauraRuis/groundedSCAN `world.py`: route, manners, push/pull), executed through `World`.
 
 The planner decides *which* action comes next (route, manners); every action is
 executed in a private `World`, and the push/pull phase repeats the primitive
 while `World.object_can_move` says it is not blocked. So there is one physics:
 the momentum of heavy objects, blocking and the backwards motion of `pull`
-(quirk Q17) come from `World.step`, never from a second copy of the rules.
+(quirk Q17, docs/model.md) come from `World.step`, never from a second copy of the rules.
 """
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""gSCAN `situation` JSON <-> `Situation` (GSCAN_SPEC §6.2, §4).
+"""gSCAN `situation` JSON <-> `Situation` (LauraRuis/groundedSCAN `Situation.to_representation`).
 
 The dataset writes positions and sizes as strings, `agent_direction` as an int,
 `distance_to_target` as a string and `placed_objects` as a dict keyed "0", "1", ...
@@ -7,7 +7,7 @@ for every accepted `d`; every rejection is a `SituationError` naming the field,
 e.g. ``situation.agent_position.row: expected an integer string, got 'x'``.
 
 Object `vector` strings are checked against the released channel order: a file
-written with another shape/color order (quirk Q14) is rejected, not silently
+written with another shape/color order (quirk Q14, docs/model.md) is rejected, not silently
 re-interpreted.
 """
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""Constant tables and small immutable types of the gSCAN world (GSCAN_SPEC §1, §2, §4).
+"""Constant tables and small immutable types of the gSCAN world (as LauraRuis/groundedSCAN's
+`world.py` and `gym_minigrid/minigrid.py` define them).
 
 Pure data plus the invariants every `Situation` satisfies (checked on construction);
 the physics lives in `world.py`, the planner in `planner.py`. Positions are (row, col) as in
@@ -17,8 +18,8 @@ GRID_SIZE = 6  # the compositional splits' grid; split I is released on 12x12
 # from a bad file is one clear error, not a huge allocation.
 SUPPORTED_GRID_SIZES = range(4, 17)
 
-# Released channel order of the 16-channel encoding (GSCAN_SPEC §4): sizes 1-4,
-# shapes, colors, agent, heading E S W N. Pinned as constants (quirk Q14).
+# Released channel order of the 16-channel encoding (groundedSCAN `Grid.encode`): sizes 1-4,
+# shapes, colors, agent, heading E S W N. Pinned as constants (quirk Q14, docs/model.md).
 SIZES: tuple[int, ...] = (1, 2, 3, 4)
 SHAPES: tuple[str, ...] = ("square", "cylinder", "circle")
 COLORS: tuple[str, ...] = ("yellow", "green", "red", "blue")
@@ -32,7 +33,7 @@ HEAVY_MIN_SIZE = 3
 LIGHT_MOMENTUM = 1
 HEAVY_MOMENTUM = 2
 
-# Command vocabulary (GSCAN_SPEC §5). Two-word adverbs are single tokens.
+# Command vocabulary (groundedSCAN `grammar.py`). Two-word adverbs are single tokens.
 INTRANSITIVE_VERBS: tuple[str, ...] = ("walk",)
 TRANSITIVE_VERBS: tuple[str, ...] = ("push", "pull")
 VERBS = INTRANSITIVE_VERBS + TRANSITIVE_VERBS
@@ -129,7 +130,7 @@ class WorldObject:
 
     @property
     def momentum_threshold(self) -> int:
-        """Push/pull primitives needed per cell of movement (GSCAN_SPEC §1.2)."""
+        """Push/pull primitives needed per cell of movement (groundedSCAN `WEIGHT_TO_MOMENTUM`)."""
         return HEAVY_MOMENTUM if self.heavy else LIGHT_MOMENTUM
 
     @property
@@ -143,7 +144,7 @@ class Situation:
     """An initial world state in gSCAN terms (round-trips the dataset `situation` JSON).
 
     `placed_objects` keeps the JSON order (the target is usually first) but object
-    order carries no meaning (quirk Q19); compare with `object_set()`.
+    order carries no meaning (quirk Q19, docs/model.md); compare with `object_set()`.
 
     Construction validates the state (cells inside the grid, one object per cell,
     known attributes, target among the placed objects) and fills the derived
@@ -181,7 +182,7 @@ class Situation:
         return situation_to_json(self)
 
 
-# Object `vector` strings: one-hot size, shape, color blocks (GSCAN_SPEC §4).
+# Object `vector` strings: one-hot size, shape, color blocks (groundedSCAN `generate_objects`).
 _SIZE_INDEX = {s: i for i, s in enumerate(SIZES)}
 _SHAPE_INDEX = {s: len(SIZES) + i for i, s in enumerate(SHAPES)}
 _COLOR_INDEX = {c: len(SIZES) + len(SHAPES) + i for i, c in enumerate(COLORS)}

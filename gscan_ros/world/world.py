@@ -1,10 +1,10 @@
 """The gSCAN world: mutable state and the one implementation of its physics.
 
 `World.step` is used by the planner (demonstrations), by dataset replay, by
-teacher-forced training states and by closed-loop evaluation (quirk Q17: one
-physics for all of them).
+teacher-forced training states and by closed-loop evaluation (quirk Q17 in
+docs/model.md: one physics for all of them).
 
-Physics (GSCAN_SPEC §1-§3.2):
+Physics (as LauraRuis/groundedSCAN `world.py` and `gym_minigrid/minigrid.py`):
 - `walk` moves one cell along the heading; a walk off the grid is a no-op.
   The agent may stand on any object.
 - `turn left` / `turn right` rotate the heading; `stay` does nothing.
@@ -116,7 +116,7 @@ class World:
 
         True when an object is under the agent and the cell in the motion direction
         is inside the grid and empty. The planner repeats the primitive while this
-        holds (GSCAN_SPEC §3.2), so planner and world share these rules.
+        holds (groundedSCAN `push_or_pull_object`), so planner and world share these rules.
         """
         return self._interaction(action) is not None
 
@@ -180,10 +180,10 @@ class World:
         layer[obj.position.row, obj.position.col, object_channels(obj.shape, obj.color, obj.size)] = 1
 
     def encode(self) -> np.ndarray:
-        """uint8[n, n, 16] in the released channel order (GSCAN_SPEC §4).
+        """uint8[n, n, 16] in the released channel order (LauraRuis/groundedSCAN `Grid.encode`).
 
         Object bits and agent bits are both set when the agent stands on an object
-        (as `Grid.encode` does; quirk Q11). Returns a fresh array.
+        (as `Grid.encode` does; quirk Q11, docs/model.md). Returns a fresh array.
         """
         if self._layer is None:
             self._layer = np.zeros((self.grid_size, self.grid_size, NUM_CHANNELS), dtype=np.uint8)

@@ -37,3 +37,21 @@ def real_situation() -> dict:
     """A fresh copy of the situation of the real compositional example in gSCAN's
     `example_prediction.json` ("push a green small square cautiously")."""
     return json.loads((FIXTURES / "real_situation.json").read_text())
+
+
+@pytest.fixture
+def probe():
+    """A ROS probe node in a fresh DDS domain (loopback), closed with every node it spun."""
+    from ros_helpers import Probe, fresh_domain_id  # ROS support only for the tests that ask
+
+    p = Probe(fresh_domain_id())
+    yield p
+    p.close()
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory):
+    """A tiny trained-shape checkpoint on disk, one per test module."""
+    from model_support import tiny_checkpoint
+
+    return tiny_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.pt")

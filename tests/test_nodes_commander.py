@@ -7,23 +7,10 @@ from gscan_ros.nodes.commander import GscanCommander, Outcome
 from gscan_ros.nodes.common import EVENT_QOS
 from gscan_ros.world.types import Action
 
-from model_support import tiny_checkpoint
-from ros_helpers import Probe, fresh_domain_id, in_process_stack
+from ros_helpers import in_process_stack
 
 WALK, TURN, EOS = Action.WALK, Action.TURN_LEFT, Action.EOS
 TIMEOUT = 30.0
-
-
-@pytest.fixture(scope="module")
-def checkpoint(tmp_path_factory):
-    return tiny_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.pt")
-
-
-@pytest.fixture
-def probe():
-    p = Probe(fresh_domain_id())
-    yield p
-    p.close()
 
 
 @pytest.fixture

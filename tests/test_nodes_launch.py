@@ -10,7 +10,6 @@ from pathlib import Path
 import pytest
 import yaml
 
-from model_support import tiny_checkpoint
 from ros_helpers import Probe, fresh_domain_id, parameters
 
 REPO = Path(__file__).resolve().parents[1]
@@ -69,11 +68,6 @@ def test_launch_file_builds_where_launch_ros_exists():
 
 def declared(node) -> set[str]:
     return set(node.list_parameters([], 0).names)
-
-
-@pytest.fixture(scope="module")
-def checkpoint(tmp_path_factory):
-    return tiny_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.pt")
 
 
 def test_params_yaml_sets_exactly_the_declared_parameters_with_their_types(checkpoint, tmp_path):

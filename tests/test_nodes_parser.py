@@ -8,8 +8,7 @@ from gscan_ros.nodes.common import EVENT_QOS, LATCHED_LOG_QOS
 from gscan_ros.nodes.parser_node import ParserNode
 from msg_adapters import msg_to_cdr, msg_to_graph
 
-from model_support import tiny_checkpoint
-from ros_helpers import Probe, fresh_domain_id, parameters
+from ros_helpers import parameters
 
 
 def cdr(text: str | bytes) -> bytes:
@@ -17,18 +16,6 @@ def cdr(text: str | bytes) -> bytes:
     if isinstance(text, str):
         return msg_to_cdr(String(data=text))
     return b"\x00\x01\x00\x00" + (len(text) + 1).to_bytes(4, "little") + text + b"\x00"
-
-
-@pytest.fixture(scope="module")
-def checkpoint(tmp_path_factory):
-    return tiny_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.pt")
-
-
-@pytest.fixture
-def probe():
-    p = Probe(fresh_domain_id())
-    yield p
-    p.close()
 
 
 @pytest.fixture

@@ -16,16 +16,9 @@ from gscan_ros.nodes.policy_node import PolicyNode
 from gscan_ros.world.types import Action
 from msg_adapters import graph_to_msg, msg_to_attention, observation_to_msg, reset_to_msg
 
-from ros_helpers import Probe, ScriptedPolicy, fresh_domain_id, parameters, source_info
+from ros_helpers import ScriptedPolicy, parameters, source_info
 
 PARSER = get_parser("semantic")
-
-
-@pytest.fixture
-def probe():
-    p = Probe(fresh_domain_id())
-    yield p
-    p.close()
 
 
 def start(probe, script, **params):

@@ -15,17 +15,10 @@ from gscan_ros.world import World
 from gscan_ros.world.types import Action
 from msg_adapters import action_to_msg, graph_to_msg, observation_to_msg, reset_to_msg
 
-from ros_helpers import Probe, fresh_domain_id, parameters
+from ros_helpers import parameters
 
 EPISODE = sample_episode(0)
 WALK, TURN, EOS = Action.WALK, Action.TURN_LEFT, Action.EOS
-
-
-@pytest.fixture
-def probe():
-    p = Probe(fresh_domain_id())
-    yield p
-    p.close()
 
 
 class LiveStack:

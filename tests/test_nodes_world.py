@@ -15,14 +15,7 @@ from gscan_ros.world import World
 from gscan_ros.world.types import Action
 from msg_adapters import msg_to_observation, msg_to_reset
 
-from ros_helpers import Probe, fresh_domain_id, parameters, source_info
-
-
-@pytest.fixture
-def probe():
-    p = Probe(fresh_domain_id())
-    yield p
-    p.close()
+from ros_helpers import parameters, source_info
 
 
 @pytest.fixture

@@ -11,7 +11,7 @@ from gscan_ros.cli.args import (
     output_dir,
     positive_int,
 )
-from gscan_ros.data.splits import ALL_TEST_SPLITS, SPLIT_LETTERS
+from gscan_ros.data.splits import SPLIT_LETTERS
 
 
 def register(subparsers) -> None:
@@ -50,6 +50,7 @@ def register(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     import time
 
+    from gscan_ros.data.io import select_test_episodes
     from gscan_ros.model.policy import Policy, default_checkpoint_path
     from gscan_ros.model.runtime import configure_torch
     from gscan_ros.training.distributed import joined
@@ -60,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
     # The ranks only exchange predictions (Python objects): gloo, whatever the device.
     with joined(args.device, backend="gloo") as ranks:
         policy = Policy.from_checkpoint(args.checkpoint, device=ranks.device)
-        episodes = _selected_episodes(args)
+        episodes = select_test_episodes(args.data, args.splits, args.max_examples, args.seed)
         start = time.time()
         result = evaluate_episodes(policy, episodes, batch_size=args.batch_size, ranks=ranks,
                                    record_attention=args.attention and not args.no_predictions,
@@ -76,40 +77,3 @@ def run(args: argparse.Namespace) -> int:
     print(markdown_table(result.summary()), end="")
     print(f"{len(episodes)} episodes in {seconds:.1f} s; results in {args.out}/")
     return 0
-
-
-def _selected_episodes(args: argparse.Namespace) -> list:
-    """The episodes of the splits asked for, each split cut to a seeded --max-examples subset."""
-    import numpy as np
-
-    from gscan_ros.errors import DatasetFormatError
-
-    by_split: dict[str, list] = {}
-    for ep in _episodes(args.data, args.splits):
-        by_split.setdefault(ep.split, []).append(ep)
-    if not by_split:
-        raise DatasetFormatError(f"{str(args.data)!r} has none of the splits {list(args.splits or ALL_TEST_SPLITS)}")
-    episodes = []
-    for eps in by_split.values():
-        if args.max_examples and len(eps) > args.max_examples:
-            pick = np.random.default_rng([args.seed, len(eps)]).choice(len(eps), args.max_examples, replace=False)
-            eps = [eps[i] for i in sorted(pick)]
-        episodes += eps
-    return episodes
-
-
-def _episodes(path: str, splits: list[str] | None):
-    """The requested splits, or every evaluation split the dataset has (train/dev skipped
-    without decoding them)."""
-    from gscan_ros.data.io import is_bag, iter_episodes, split_bags
-
-    if splits:
-        yield from iter_episodes(path, splits)
-    elif is_bag(path) or split_bags(path):
-        yield from iter_episodes(path, ALL_TEST_SPLITS)
-    else:
-        from gscan_ros.data.dataset import Example, iter_raw_examples
-
-        for split, index, raw in iter_raw_examples(path):
-            if split in ALL_TEST_SPLITS:
-                yield Example.from_json(raw).to_episode(split, index)

@@ -204,6 +204,7 @@ def _progression(args: argparse.Namespace) -> int:
 
 
 def _metrics(args: argparse.Namespace) -> int:
+    from gscan_ros.data.io import select_test_episodes
     from gscan_ros.model.policy import Policy
     from gscan_ros.training.explain import (
         evenly,
@@ -215,7 +216,7 @@ def _metrics(args: argparse.Namespace) -> int:
         summarize,
     )
 
-    episodes = _metric_episodes(args)
+    episodes = select_test_episodes(args.data, args.splits, args.max_examples)  # as evaluate's seed 0
     if args.progression:
         paths = evenly(snapshots(args.progression), args.max_columns)
         rows = progression_metrics(paths, episodes, args.batch_size, device=args.device)
@@ -227,25 +228,3 @@ def _metrics(args: argparse.Namespace) -> int:
     print(f"{_model_name(args, policy)} on {args.data} (step 0):")
     print(metrics_table(summary), end="")
     return 0
-
-
-def _metric_episodes(args: argparse.Namespace) -> list:
-    """The --splits (default: every test split present) of --data, each cut to a seeded subset
-    of --max-examples exactly as `evaluate --max-examples` cuts it."""
-    import numpy as np
-
-    from gscan_ros.cli.evaluate import _episodes as evaluation_episodes
-    from gscan_ros.data.splits import ALL_TEST_SPLITS
-
-    by_split: dict[str, list] = {}
-    for ep in evaluation_episodes(args.data, args.splits):
-        by_split.setdefault(ep.split, []).append(ep)
-    if not by_split:
-        raise GscanError(f"{args.data} has none of the splits {list(args.splits or ALL_TEST_SPLITS)}")
-    episodes = []
-    for eps in by_split.values():
-        if args.max_examples and len(eps) > args.max_examples:
-            pick = np.random.default_rng([0, len(eps)]).choice(len(eps), args.max_examples, replace=False)
-            eps = [eps[i] for i in sorted(pick)]
-        episodes += eps
-    return episodes

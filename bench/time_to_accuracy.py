@@ -8,7 +8,9 @@ Without --data, the full compositional set is generated once (seed 0) into
 `data_gen/comp` and reused afterwards. Validation is closed loop on a fixed, seeded
 1,000-episode subset of dev (seed = the run's seed) every `--validate-every` updates.
 The clock is the trainer's: training and validation time, not data loading; a run
-resumed with `--resume` keeps counting from where it stopped.
+resumed with `--resume` keeps counting from where it stopped. With seed screening
+(`screen_seeds` in the config) the clock and the ex/s include every candidate's updates;
+the updates reported are the kept candidate's.
 
 One row per validation, then as the last line exactly one of
     time-to-accuracy: reached 95.0% dev exact match after U updates, M.M minutes (X ex/s)
@@ -97,6 +99,14 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     records = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     validations = [r for r in records if r.get("event") == "validation"]
+    for r in records:
+        if r.get("event") == "screen":
+            print(f"screen: candidate {r['candidate']} (seed {r['seed']}) after {r['step']} updates: "
+                  f"localization {r['localization']:.1f}% (chance {r['chance']:.1f}%) "
+                  f"{'kept' if r['passed'] else 'rejected'} at {r['elapsed_s'] / 60:.1f} minutes")
+        elif r.get("event") == "screen_end":
+            print(f"screen: training seed {r['seed']}; {r['screen_updates']} updates spent on "
+                  f"{r['candidates']} candidate(s) are in the minutes below")
     hit = next((r for r in validations if r["dev_exact_match"] >= args.target), None)
     rate = throughput(out / "metrics.jsonl")
     if hit is not None:

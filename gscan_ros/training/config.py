@@ -74,6 +74,15 @@ class TrainConfig:
     """Wall-clock budget in minutes; 0 = none. Checked after each update."""
     seed: int = 0
     """Seeds python random, numpy and torch; epoch e's order comes from (seed, e)."""
+    screen_seeds: int = 0
+    """Seed screening (docs/results.md, "The sign of the maps"): start up to this many
+    candidates (seeds `seed`, `seed` + 1000, `seed` + 2000, ...), train each for
+    `screen_updates` updates, and continue the first whose noun-phrase maps peak on the
+    target more often than chance (else the one that peaks there most often). The chosen
+    candidate trains on exactly as a run with its seed would; the clock counts every
+    candidate. 0 or 1 = no screening; needs a model that passes attention maps."""
+    screen_updates: int = 1000
+    """Updates each screened candidate trains before its maps are read."""
     train_split: str = "train"
     """Split trained on."""
     dev_split: str = "dev"
@@ -113,7 +122,7 @@ class TrainConfig:
         for key in ("batch_size", "max_updates", "validate_every", "checkpoint_every", "log_every", "eval_batch_size"):
             if int(getattr(self, key)) <= 0:
                 raise ConfigError(f"{key} must be positive, got {getattr(self, key)!r}")
-        for key in ("warmup_updates", "decay_updates", "max_train_examples", "max_train_target_length",
+        for key in ("screen_seeds", "screen_updates", "warmup_updates", "decay_updates", "max_train_examples", "max_train_target_length",
                     "max_dev_examples", "threads"):
             if int(getattr(self, key)) < 0:
                 raise ConfigError(f"{key} must be >= 0, got {getattr(self, key)!r}")
@@ -131,7 +140,14 @@ class TrainConfig:
             raise ConfigError(f"snapshot_every must be >= 0, got {self.snapshot_every!r}")
         if not isinstance(self.model, dict):
             raise ConfigError(f"model must be a mapping of model settings, got {self.model!r}")
-        self.model_config()  # validates model keys
+        model_config = self.model_config()  # validates model keys
+        if self.screen_seeds > 1:
+            if not getattr(model_config, "uses_attention", False):
+                raise ConfigError("screen_seeds needs a model that passes attention maps "
+                                  f"(model_kind compositional, message attention); set screen_seeds: 0 for "
+                                  f"{self.model_kind} / {self.model.get('message', 'attention')}")
+            if not 0 < self.screen_updates < self.max_updates:
+                raise ConfigError(f"screen_updates must be in (0, max_updates), got {self.screen_updates!r}")
 
     def lr_factor(self, step: int) -> float:
         """Multiplier of `lr` for update `step` (0-based): warm-up, then the decay."""

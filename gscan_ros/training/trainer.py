@@ -32,7 +32,15 @@ from gscan_ros.training import distributed
 from gscan_ros.training.batches import EpisodeStore, EpochCursor, iterate_batches
 from gscan_ros.training.config import ConfigError, TrainConfig
 from gscan_ros.training.evaluate import evaluate_episodes, exact_match_by_group
+from gscan_ros.training.explain import step0_readings, summarize
 from gscan_ros.training.step import TrainingDiverged, TrainStep
+
+# Seed screening: candidate k of a run with seed s has seed s + 1000 k (distinct for runs
+# with seeds below 1000), and its maps are read on this many dev episodes.
+SCREEN_SEED_STRIDE = 1000
+SCREEN_EPISODES = 300
+# What a screened candidate is: the Run attributes that `fresh_start` and training change.
+SCREEN_STATE = ("seed", "model", "optimizer", "scheduler", "step", "cursor", "train_step", "policy")
 
 RUN_FILES = ("config.yaml", "metrics.jsonl", "learning_curve.png", "last.pt", "best.pt", "model.pt")
 
@@ -76,6 +84,13 @@ class RunFiles:
             for path in self.existing():
                 path.unlink()
         self.root.mkdir(parents=True, exist_ok=True)
+
+
+def screen_passes(reading: dict) -> bool:
+    """A screened candidate passes when its noun-phrase maps peak on the target more often
+    than a uniform pick among the objects would: the paper's maps, not inverted ones (which
+    sit near 0 %)."""
+    return reading["localization"] > reading["localization_chance"]
 
 
 def seed_everything(seed: int) -> dict:
@@ -245,11 +260,21 @@ class Run:
         if not len(self.store):
             raise DatasetFormatError(f"dataset {data!r} has no {cfg.train_split!r} episodes")
         self.dev_eps = load_dev(data, cfg) if ranks.is_main else []
-        self.model = new_model(cfg, parser, self.lexicon, self.store).to(ranks.device)
+        self.parser = parser
+        if cfg.screen_seeds > 1 and ranks.distributed:
+            raise ConfigError("screen_seeds runs on one process; screen first, then train on several ranks")
+        self.best, self.elapsed_before = -1.0, 0.0
+        self.last_metrics: dict = {}
+        self.fresh_start(cfg.seed)
+
+    def fresh_start(self, seed: int) -> None:
+        """A new model, optimizer and schedule from `seed`, at update 0 (the state `seed` alone gives)."""
+        cfg = self.cfg
+        self.seed = seed
+        self.model = new_model(cfg, self.parser, self.lexicon, self.store).to(self.ranks.device)
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=cfg.lr, betas=(0.9, 0.999))
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, cfg.lr_factor)
-        self.step, self.cursor, self.best, self.elapsed_before = 0, EpochCursor(), -1.0, 0.0
-        self.last_metrics: dict = {}
+        self.step, self.cursor = 0, EpochCursor()
 
     def resume(self) -> None:
         """Continue from last.pt: weights, optimizer, schedule, batch cursor, best score, RNGs."""
@@ -262,6 +287,7 @@ class Run:
         for group in self.optimizer.param_groups:
             group["lr"] = cfg.lr * cfg.lr_factor(self.step)
         self.cursor = EpochCursor(**ckpt["cursor"])
+        self.seed = int(ckpt.get("train_seed", cfg.seed))
         self.best = float(ckpt["best_dev_exact_match"])
         self.elapsed_before = float(ckpt.get("elapsed_s", 0.0))
         _restore_rng(ckpt["rng"], self.ranks.device)
@@ -270,8 +296,8 @@ class Run:
         """Make the update step (DDP joins here) and, on rank 0, the run files and the start record."""
         ranks = self.ranks
         if not ranks.is_main:  # own dropout masks; the weights come from rank 0 (DDP broadcasts them)
-            torch.manual_seed(int(np.random.SeedSequence([self.cfg.seed, ranks.rank, self.step]).generate_state(1)[0]))
-        self.train_step = TrainStep(self.model, self.optimizer, self.store, self.scheduler, self.cfg.grad_clip, ranks)
+            torch.manual_seed(int(np.random.SeedSequence([self.seed, ranks.rank, self.step]).generate_state(1)[0]))
+        self.make_step()
         if ranks.is_main:
             self.files.create(resumed)
             self.files.config.write_text(yaml.safe_dump(self.cfg.to_dict(), sort_keys=False))
@@ -281,8 +307,13 @@ class Run:
                 "dev_examples": len(self.dev_eps), "parameters": n_params, "resumed": resumed,
                 "world_size": ranks.world_size, "device": str(ranks.device),
                 "data_load_s": round(time.time() - self.setup_started, 2), "config": self.cfg.to_dict()})
-        self.policy = Policy(self.model, self.cfg.parser, self.lexicon)
         self.started = time.time()
+
+    def make_step(self) -> None:
+        """The update step and the closed-loop policy of the current model."""
+        self.train_step = TrainStep(self.model, self.optimizer, self.store, self.scheduler, self.cfg.grad_clip,
+                                    self.ranks)
+        self.policy = Policy(self.model, self.cfg.parser, self.lexicon)
 
     def elapsed(self) -> float:
         """Training seconds, including those before a resume."""
@@ -291,9 +322,11 @@ class Run:
     def train_loop(self) -> None:
         """Update until max_updates, the time budget or the target dev exact match."""
         cfg, ranks, main = self.cfg, self.ranks, self.ranks.is_main
+        if self.step == 0 and cfg.screen_seeds > 1:
+            self.screen()
         window = _LossWindow()
         bar = tqdm(total=cfg.max_updates, initial=self.step, desc="training", unit="upd", disable=not self.progress)
-        batches = iterate_batches(self.store, cfg.batch_size, cfg.batching, cfg.seed, self.cursor)
+        batches = iterate_batches(self.store, cfg.batch_size, cfg.batching, self.seed, self.cursor)
         budget_s = cfg.max_minutes * 60.0
         while self.step < cfg.max_updates:
             cursor, ids = next(batches)
@@ -323,6 +356,43 @@ class Run:
             if out_of_time or reached:
                 break
         bar.close()
+
+    def screen(self) -> None:
+        """Seed screening (TrainConfig.screen_seeds): train candidates in turn for
+        `screen_updates` updates each and keep the first whose step-0 noun-phrase maps
+        localize the target above chance on the dev subset, else the best; one `screen`
+        record per candidate, and the run continues from the kept candidate's state."""
+        cfg = self.cfg
+        episodes = self.dev_eps[:SCREEN_EPISODES]
+        kept: dict | None = None
+        for k in range(cfg.screen_seeds):
+            seed = cfg.seed + SCREEN_SEED_STRIDE * k
+            if k:
+                seed_everything(seed)
+                self.fresh_start(seed)
+                self.make_step()
+            batches = iterate_batches(self.store, cfg.batch_size, cfg.batching, seed, self.cursor)
+            for _ in range(cfg.screen_updates):
+                self.cursor, ids = next(batches)
+                self.train_step(ids)
+                self.step += 1
+            reading = summarize(step0_readings(self.policy, episodes))["all"]
+            passed = screen_passes(reading)
+            _append(self.files.metrics, {
+                "event": "screen", "candidate": k, "seed": seed, "step": self.step,
+                "localization": reading["localization"], "chance": reading["localization_chance"],
+                "size_spearman": reading["size_spearman"], "passed": passed, "elapsed_s": round(self.elapsed(), 2)})
+            if kept is None or reading["localization"] > kept["localization"]:
+                kept = {"localization": reading["localization"], "seed": seed, "rng": _rng_state(self.ranks.device),
+                        **{name: getattr(self, name) for name in SCREEN_STATE}}
+            if passed:
+                break
+        for name in SCREEN_STATE:
+            setattr(self, name, kept[name])
+        _restore_rng(kept["rng"], self.ranks.device)
+        _append(self.files.metrics, {"event": "screen_end", "seed": self.seed, "candidates": k + 1,
+                                     "screen_updates": (k + 1) * cfg.screen_updates,
+                                     "elapsed_s": round(self.elapsed(), 2)})
 
     def log_train(self, window: "_LossWindow") -> dict:
         """The `train` record of the updates since the last one (written by rank 0)."""
@@ -358,7 +428,7 @@ class Run:
         if training_state:
             extra = {"train_config": self.cfg.to_dict(), "optimizer": _to_cpu(self.optimizer.state_dict()),
                      "rng": _rng_state(self.ranks.device),
-                     "cursor": {"epoch": self.cursor.epoch, "batch": self.cursor.batch},
+                     "cursor": {"epoch": self.cursor.epoch, "batch": self.cursor.batch}, "train_seed": self.seed,
                      "best_dev_exact_match": self.best, "elapsed_s": self.elapsed()}
         save_checkpoint(path, checkpoint_dict(self.model, parser=self.cfg.parser, lexicon=self.lexicon,
                                               step=self.step, metrics=metrics, **extra))

@@ -122,8 +122,8 @@ class TrainConfig:
         for key in ("batch_size", "max_updates", "validate_every", "checkpoint_every", "log_every", "eval_batch_size"):
             if int(getattr(self, key)) <= 0:
                 raise ConfigError(f"{key} must be positive, got {getattr(self, key)!r}")
-        for key in ("screen_seeds", "screen_updates", "warmup_updates", "decay_updates", "max_train_examples", "max_train_target_length",
-                    "max_dev_examples", "threads"):
+        for key in ("screen_seeds", "screen_updates", "warmup_updates", "decay_updates", "max_train_examples",
+                    "max_train_target_length", "max_dev_examples", "threads"):
             if int(getattr(self, key)) < 0:
                 raise ConfigError(f"{key} must be >= 0, got {getattr(self, key)!r}")
         for key in ("lr", "min_lr_ratio", "grad_clip", "target_dev_exact_match", "max_minutes"):

@@ -324,6 +324,7 @@ class Run:
         cfg, ranks, main = self.cfg, self.ranks, self.ranks.is_main
         if self.step == 0 and cfg.screen_seeds > 1:
             self.screen()
+            self.checkpoint(self.files.last, self.last_metrics, training_state=True)  # screening is not redone
         window = _LossWindow()
         bar = tqdm(total=cfg.max_updates, initial=self.step, desc="training", unit="upd", disable=not self.progress)
         batches = iterate_batches(self.store, cfg.batch_size, cfg.batching, self.seed, self.cursor)

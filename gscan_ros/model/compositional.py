@@ -431,13 +431,13 @@ class CompositionalNetwork(nn.Module):
             return maps
         return torch.where(passes_minmax[..., None], minmax_normalize(maps), maps)
 
-    @staticmethod
-    def overlap(maps: torch.Tensor, antonym_pairs: torch.Tensor, pair_mask: torch.Tensor) -> torch.Tensor:
-        """Σ_cells(minmax(map_word) * minmax(map_antonym)) / cells per row (CG `SentenceNetwork.loss`)."""
+    def overlap(self, maps: torch.Tensor, antonym_pairs: torch.Tensor, pair_mask: torch.Tensor) -> torch.Tensor:
+        """Σ_cells(minmax(map_word) * minmax(map_antonym)) / cells per row (CG `SentenceNetwork.loss`);
+        with size_map='minmax' the pairs' maps arrive normalised (`passed_maps`)."""
         n, P, _ = antonym_pairs.shape
         cells = maps.shape[-1]
         sel = maps.gather(1, antonym_pairs.reshape(n, 2 * P, 1).expand(-1, -1, cells)).view(n, P, 2, cells)
-        norm = minmax_normalize(sel)
+        norm = sel if self.cfg.size_map == "minmax" else minmax_normalize(sel)
         prod = (norm[:, :, 0] * norm[:, :, 1]).sum(-1) / cells
         return (prod * pair_mask).sum(-1)
 

@@ -80,9 +80,12 @@ class ReferenceNetwork:
                     for other in spec.antonym_of(node.head):  # the antonym's head on the same inputs
                         shadow = self.passed(node.module, self.attention(node.module, other, obs, args, h[nid]))
                         antonym_maps.setdefault(nid, []).append(shadow)
-                        # The overlap normalises the maps passed on; with size_map='minmax' they
-                        # already are, and normalising again moves them by ~1e-5.
-                        overlap = overlap + (minmax_normalize(att[nid]) * minmax_normalize(shadow)).sum() / cfg.cells
+                        # The overlap compares min-max normalised maps; with size_map='minmax' the
+                        # maps passed on already are.
+                        a, b = att[nid], shadow
+                        if cfg.size_map != "minmax":
+                            a, b = minmax_normalize(a), minmax_normalize(b)
+                        overlap = overlap + (a * b).sum() / cfg.cells
                     x = (obs * att[nid][:, None]).sum(0)  # Σ_cells obs ⊙ att^w
                 else:  # message='state': no maps
                     x = obs.sum(0)

@@ -34,7 +34,7 @@ def write_plan(path: Path, root: Path, defaults: dict = TINY, runs: list | None 
             {"name": "semantic", "config": str(REPO / "configs/semantic.yaml"), "data": "tiny", "seeds": [0],
              "splits": SPLITS},
             {"name": "state", "config": str(REPO / "configs/semantic.yaml"), "data": "tiny", "seeds": [0],
-             "splits": SPLITS, "set": {"model.message": "state"}},
+             "splits": SPLITS, "set": {"model.message": "state"}, "max_eval_examples": 3},
         ],
     }
     path.write_text(yaml.safe_dump(plan, sort_keys=False))
@@ -60,12 +60,13 @@ def test_runner_generates_trains_and_evaluates_every_run(trained):
     (data,) = (root / "data").iterdir()
     assert (data / "recipe.json").is_file() and (data / "train" / "metadata.yaml").is_file()
     assert (data / "generate.log").read_text().count("gscan-ros generate") == 1  # once for both runs
-    for name, column in (("semantic_s0", "semantic"), ("state_s0", "state")):
+    # semantic decodes the plan's evaluation.max_examples, state its own max_eval_examples
+    for name, column, decoded in (("semantic_s0", "semantic", 5), ("state_s0", "state", 3)):
         run = root / "results" / name
         results = json.loads((run / "results.json").read_text())
         assert results["column"] == column and results["seed"] == 0 and results["updates"] == 2
-        assert set(results["splits"]) == set(SPLITS) and results["evaluation"]["max_examples"] == 5
-        assert results["splits"]["test"]["examples"] == 5 and results["data"]["k_shot"] == 1
+        assert set(results["splits"]) == set(SPLITS) and results["evaluation"]["max_examples"] == decoded
+        assert results["splits"]["test"]["examples"] == decoded and results["data"]["k_shot"] == 1
         assert yaml.safe_load((run / "config.yaml").read_text())["seed"] == 0
         assert not (run / ".lock").exists() and not (run / ".evaluation").exists()
     state = yaml.safe_load((root / "results/state_s0/config.yaml").read_text())
@@ -144,6 +145,8 @@ BAD_PLANS = [
     ({"defaults": {"learning_rate": 3}}, "learning_rate"),
     ({"runs": [{"name": "x", "config": "{config}", "data": "tiny", "seeds": [0], "set": {"model.rnn_dim": -1}}]},
      "run x_s0"),
+    ({"runs": [{"name": "x", "config": "{config}", "data": "tiny", "seeds": [0], "max_eval_examples": -5}]},
+     "runs[0].max_eval_examples"),
 ]
 
 

@@ -118,6 +118,7 @@ class RunSpec:
     seed: int
     overrides: tuple[str, ...]
     splits: tuple[str, ...]
+    eval_max_examples: int  # a seeded subset of this many episodes per test split; 0 = all
 
     def train_overrides(self, threads: int) -> list[str]:
         return [*self.overrides, f"seed={self.seed}", f"threads={threads}"]
@@ -151,7 +152,7 @@ _TOP_KEYS = ("results", "data_root", "defaults", "evaluation", "datasets", "runs
 _DATASET_KEYS = {"split_kind": str, "examples": (int, str), "k_shot": int, "seed": int, "grid_size": int,
                  "num_resampling": int, "percentage_train": float, "percentage_dev": float,
                  "cut_off_target_length": int, "path": str}
-_RUN_KEYS = ("name", "column", "title", "paper", "config", "data", "seeds", "set", "splits")
+_RUN_KEYS = ("name", "column", "title", "paper", "config", "data", "seeds", "set", "splits", "max_eval_examples")
 _EVAL_KEYS = ("max_examples", "batch_size")
 
 
@@ -212,7 +213,9 @@ def load_plan(path: str | Path, results: str | Path | None = None, data_root: st
             raise PlanError(f"{where}: {key}.splits must be a list of {kind} test splits "
                             f"{list(TEST_SPLITS[kind])}, got {splits!r}")
         overrides = defaults + _overrides(entry.get("set") or {}, where, f"{key}.set")
-        parsed.append((name, column, title, paper, config, datasets[data], seeds, tuple(overrides), tuple(splits)))
+        eval_max = _int(entry.get("max_eval_examples", max_examples), where, f"{key}.max_eval_examples", 0)
+        parsed.append((name, column, title, paper, config, datasets[data], seeds, tuple(overrides), tuple(splits),
+                       eval_max))
     runs = _expand(parsed, where)
     results = results or _text(doc.get("results", "results"), where, "results")
     data_root = data_root or _text(doc.get("data_root", "data_gen/experiments"), where, "data_root")
@@ -226,7 +229,7 @@ def _expand(entries: list[tuple], where: str) -> list[RunSpec]:
     runs: list[RunSpec] = []
     names: set[str] = set()
     for position in range(max(len(e[6]) for e in entries)):
-        for name, column, title, paper, config, data, seeds, overrides, splits in entries:
+        for name, column, title, paper, config, data, seeds, overrides, splits, eval_max in entries:
             if position >= len(seeds):
                 continue
             run_name = f"{name}_s{seeds[position]}"
@@ -235,7 +238,7 @@ def _expand(entries: list[tuple], where: str) -> list[RunSpec]:
             names.add(run_name)
             runs.append(RunSpec(index=len(runs), name=run_name, entry=name, column=column, title=title,
                                 paper_column=paper, config=config, data=data, seed=seeds[position],
-                                overrides=overrides, splits=splits))
+                                overrides=overrides, splits=splits, eval_max_examples=eval_max))
     return runs
 
 
@@ -480,7 +483,7 @@ def run_state(run_dir: Path, spec: RunSpec, cfg, plan: Plan, ignore_lock: bool =
     end = finished_end(events, cfg)
     if changed:
         state.status, state.detail = "stale", f"config changed: {', '.join(changed)}"
-    elif end is not None and _evaluated(run_dir, spec, plan, end):
+    elif end is not None and _evaluated(run_dir, spec, end):
         state.status = "done"
     elif end is not None:
         state.status = "evaluate"
@@ -489,14 +492,14 @@ def run_state(run_dir: Path, spec: RunSpec, cfg, plan: Plan, ignore_lock: bool =
     return state
 
 
-def _evaluated(run_dir: Path, spec: RunSpec, plan: Plan, end: dict) -> bool:
+def _evaluated(run_dir: Path, spec: RunSpec, end: dict) -> bool:
     try:
         doc = json.loads((run_dir / "results.json").read_text())
     except (OSError, ValueError):
         return False
     ev = doc.get("evaluation") or {}
     return (doc.get("updates") == end["step"] and ev.get("splits") == list(spec.splits)
-            and ev.get("max_examples") == plan.eval_max_examples)
+            and ev.get("max_examples") == spec.eval_max_examples)
 
 
 def dataset_state(recipe: DataRecipe, data_root: Path) -> str:
@@ -659,7 +662,7 @@ class Runner:
         cmd = [*CLI, "evaluate", "--checkpoint", str(run_dir / "model.pt"), "--data", str(data_dir),
                "--splits", *spec.splits, "--out", str(scratch), "--threads", str(self.threads), "--quiet",
                "--no-predictions", "--batch-size", str(self.plan.eval_batch_size),
-               "--max-examples", str(self.plan.eval_max_examples)]
+               "--max-examples", str(spec.eval_max_examples)]
         self._call(cmd, run_dir / "evaluate.log", lock)
         evaluation = json.loads((scratch / "results.json").read_text())
         end = finished_end(read_events(run_dir / "metrics.jsonl"), cfg)
@@ -673,7 +676,7 @@ class Runner:
             "parser": cfg.parser, "max_train_target_length": cfg.max_train_target_length,
             "config": str(spec.config), "overrides": list(spec.overrides),
             "data": {**spec.data.record(), "dir": str(data_dir)},
-            "evaluation": {"splits": list(spec.splits), "max_examples": self.plan.eval_max_examples,
+            "evaluation": {"splits": list(spec.splits), "max_examples": spec.eval_max_examples,
                            "episodes": evaluation.get("episodes"), "seconds": evaluation.get("seconds")},
             "splits": evaluation["splits"],
         }

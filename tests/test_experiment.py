@@ -306,3 +306,20 @@ def test_paper_figures_match_the_tex():
                 assert TABLE2[key][lengths[head]] == _tex_figure(cell), (head, key)
             found += 1
     assert found == 4
+
+
+@pytest.mark.parametrize("screens, new_count, stale", [
+    ([(0, False), (1, True)], 8, False),  # passed at candidate 1: 8 candidates keep the same seed
+    ([(0, False), (1, True)], 1, True),  # without screening, seed 0 would have trained
+    ([(0, False), (1, False)], 8, True),  # the screen kept the best of two; 8 might keep another
+])
+def test_more_screen_candidates_leave_a_run_whose_screen_passed_alone(tmp_path, screens, new_count, stale):
+    from gscan_ros.training.config import TrainConfig
+    from gscan_ros.training.experiment import config_changes
+
+    old = TrainConfig(screen_seeds=len(screens), screen_updates=10, max_updates=100)
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump(old.to_dict()))
+    (tmp_path / "metrics.jsonl").write_text("".join(
+        json.dumps({"event": "screen", "candidate": k, "passed": ok}) + "\n" for k, ok in screens))
+    new = TrainConfig(screen_seeds=new_count, screen_updates=10, max_updates=100)
+    assert (config_changes(tmp_path, new) == ["screen_seeds"]) is stale

@@ -454,10 +454,20 @@ def config_changes(run_dir: Path, cfg) -> list[str]:
     new = cfg.to_dict()
     keys = sorted((set(old) & set(new)) - set(UNTRACKED_KEYS) - {"model"})
     changed = [k for k in keys if old[k] != new[k]]
+    if "screen_seeds" in changed and _screen_kept(run_dir, new["screen_seeds"]):
+        changed.remove("screen_seeds")
     old_model, new_model = _model_settings(old), cfg.model_config().to_dict()
     if old_model is None:
         return changed + ["model"]
     return changed + [f"model.{k}" for k in sorted(set(old_model) & set(new_model)) if old_model[k] != new_model[k]]
+
+
+def _screen_kept(run_dir: Path, screen_seeds: int) -> bool:
+    """The run's seed screen passed at a candidate that `screen_seeds` candidates also
+    reach, so screening with that many would have kept the same seed (the same run)."""
+    passed = [e["candidate"] for e in read_events(run_dir / "metrics.jsonl")
+              if e.get("event") == "screen" and e.get("passed")]
+    return bool(passed) and passed[0] < max(screen_seeds, 1)
 
 
 def _model_settings(config: dict) -> dict | None:

@@ -17,7 +17,7 @@ def run_train(dataset, out, *extra):
 
 
 def script_localization(monkeypatch, values):
-    """The screen reads these localization %s in turn (chance 19 %)."""
+    """The screen reads these localization %s in turn (chance 19 %: a pass above 9.5 %)."""
     import gscan_ros.training.trainer as trainer
 
     scripted = iter(values)
@@ -42,7 +42,7 @@ def assert_same_weights(a, b):
 
 def test_the_first_candidate_above_chance_is_kept_and_trains_as_its_seed(tiny_dataset, tmp_path, monkeypatch):
     torch.set_num_threads(1)
-    script_localization(monkeypatch, [2.0, 31.0, 99.0])
+    script_localization(monkeypatch, [2.0, 10.0, 99.0])
     screened = tmp_path / "screened"
     assert run_train(tiny_dataset, screened, "--set", "screen_seeds=3", "--set", "screen_updates=2",
                      "--set", "max_updates=4") == 0
@@ -62,7 +62,7 @@ def test_the_first_candidate_above_chance_is_kept_and_trains_as_its_seed(tiny_da
 
 def test_without_a_pass_the_best_candidate_is_kept_and_resumes_as_its_seed(tiny_dataset, tmp_path, monkeypatch):
     torch.set_num_threads(1)
-    script_localization(monkeypatch, [5.0, 12.0, 3.0])
+    script_localization(monkeypatch, [5.0, 8.0, 3.0])  # all below half of chance (9.5)
     screened = tmp_path / "screened"
     args = ["--set", "screen_seeds=3", "--set", "screen_updates=2"]
     assert run_train(tiny_dataset, screened, *args, "--set", "max_updates=3") == 0

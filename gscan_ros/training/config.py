@@ -78,7 +78,7 @@ class TrainConfig:
     """Seed screening (docs/results.md, "The sign of the maps"): start up to this many
     candidates (seeds `seed`, `seed` + 1000, `seed` + 2000, ...), train each for
     `screen_updates` updates, and continue the first whose noun-phrase maps peak on the
-    target more often than chance (else the one that peaks there most often). The chosen
+    target at least half as often as chance (else the one that peaks there most often). The chosen
     candidate trains on exactly as a run with its seed would; the clock counts every
     candidate. 0 or 1 = no screening; needs a model that passes attention maps."""
     screen_updates: int = 1000

@@ -46,7 +46,8 @@ class SerializableConfig:
 def build_model(kind: str, model_config: dict, vocabulary: dict) -> nn.Module:
     """A fresh model of `kind` from plain-dict config and vocabulary."""
     if kind == "compositional":
-        from gscan_ros.model.compositional import CompositionalNetwork, ModelConfig, ModuleTable
+        from gscan_ros.model.compositional import CompositionalNetwork, ModelConfig
+        from gscan_ros.model.modules import ModuleTable
 
         return CompositionalNetwork(ModelConfig.from_dict(model_config), ModuleTable.from_list(vocabulary["modules"]))
     if kind == "seq2seq":
@@ -126,7 +127,7 @@ def validate_checkpoint(ckpt: dict, path: str | os.PathLike) -> None:
         raise CheckpointError(f"{where}: empty vocabulary (no {entries})")
     if kind == "compositional":
         from gscan_ros.model.compositional import ModelConfig as config_class
-        from gscan_ros.model.compositional import ModuleTable
+        from gscan_ros.model.modules import ModuleTable
 
         for spec in ModuleTable.from_list(vocabulary).specs:
             if spec.arity < 0 or spec.num_heads < 1:

@@ -26,7 +26,8 @@ from gscan_ros.language.graph import CommandGraph
 from gscan_ros.model.fast_ops import gru_cell
 
 if TYPE_CHECKING:
-    from gscan_ros.model.compositional import ModuleTable, WordModuleBank
+    from gscan_ros.model.compositional import WordModuleBank
+    from gscan_ros.model.modules import ModuleTable
 
 
 @dataclass

@@ -18,8 +18,8 @@ from tqdm import tqdm
 
 from gscan_ros.data.episode import Episode
 from gscan_ros.language.graph import CommandGraph
-from gscan_ros.model.compositional import ModuleTable
 from gscan_ros.model.layout import Layout
+from gscan_ros.model.modules import ModuleTable
 from gscan_ros.model.teacher_forcing import TeacherBatch
 from gscan_ros.world.types import GRID_SIZE, NUM_CHANNELS, Action
 

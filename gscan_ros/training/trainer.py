@@ -25,7 +25,7 @@ from tqdm import tqdm
 from gscan_ros.errors import CheckpointError, DatasetFormatError, GscanError
 from gscan_ros.language.lexicon import Lexicon
 from gscan_ros.model.checkpoint import build_model, checkpoint_dict, read_checkpoint, restore_model, save_checkpoint
-from gscan_ros.model.compositional import ModuleTable
+from gscan_ros.model.modules import ModuleTable
 from gscan_ros.model.policy import Policy
 from gscan_ros.model.runtime import configure_torch
 from gscan_ros.training import distributed

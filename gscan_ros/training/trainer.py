@@ -374,12 +374,17 @@ class Run:
                 self.fresh_start(seed)
                 self.make_step()
             batches = iterate_batches(self.store, cfg.batch_size, cfg.batching, seed, self.cursor)
-            for _ in range(cfg.screen_updates):
+            for _ in tqdm(range(cfg.screen_updates), desc=f"screen {k + 1}/{cfg.screen_seeds} (seed {seed})",
+                          unit="upd", disable=not self.progress):
                 self.cursor, ids = next(batches)
                 self.train_step(ids)
                 self.step += 1
             reading = summarize(step0_readings(self.policy, episodes))["all"]
             passed = screen_passes(reading)
+            if self.progress:
+                tqdm.write(f"seed {seed}: the maps localize the target in {reading['localization']:.1f}% of "
+                           f"{len(episodes)} dev episodes (chance {reading['localization_chance']:.1f}%): "
+                           f"{'kept' if passed else 'rejected'}")
             _append(self.files.metrics, {
                 "event": "screen", "candidate": k, "seed": seed, "step": self.step,
                 "localization": reading["localization"], "chance": reading["localization_chance"],
@@ -392,6 +397,8 @@ class Run:
         for name in SCREEN_STATE:
             setattr(self, name, kept[name])
         _restore_rng(kept["rng"], self.ranks.device)
+        if self.progress and not passed:
+            tqdm.write(f"no candidate passed; seed {self.seed} localized the target most often and trains on")
         _append(self.files.metrics, {"event": "screen_end", "seed": self.seed, "candidates": k + 1,
                                      "screen_updates": (k + 1) * cfg.screen_updates,
                                      "elapsed_s": round(self.elapsed(), 2)})

@@ -390,7 +390,7 @@ class Run:
                 "localization": reading["localization"], "chance": reading["localization_chance"],
                 "size_spearman": reading["size_spearman"], "passed": passed, "elapsed_s": round(self.elapsed(), 2)})
             if kept is None or reading["localization"] > kept["localization"]:
-                kept = {"localization": reading["localization"], "seed": seed, "rng": _rng_state(self.ranks.device),
+                kept = {"localization": reading["localization"], "rng": _rng_state(self.ranks.device),
                         **{name: getattr(self, name) for name in SCREEN_STATE}}
             if passed:
                 break

@@ -443,10 +443,11 @@ class RunState:
     detail: str = ""
 
 
-def config_changes(run_dir: Path, cfg) -> list[str]:
+def config_changes(run_dir: Path, cfg, events: list[dict] | None = None) -> list[str]:
     """Keys where the run's config.yaml differs from the plan's config: budget and threads
     aside, model settings compared with their defaults filled in, keys only one side has
-    (a field added to TrainConfig since) ignored. Empty for a run without config.yaml."""
+    (a field added to TrainConfig since) ignored. Empty for a run without config.yaml.
+    `events` are the run's metrics.jsonl records when the caller has read them already."""
     try:
         old = yaml.safe_load((run_dir / "config.yaml").read_text()) or {}
     except FileNotFoundError:
@@ -454,7 +455,9 @@ def config_changes(run_dir: Path, cfg) -> list[str]:
     new = cfg.to_dict()
     keys = sorted((set(old) & set(new)) - set(UNTRACKED_KEYS) - {"model"})
     changed = [k for k in keys if old[k] != new[k]]
-    if "screen_seeds" in changed and _screen_kept(run_dir, new["screen_seeds"]):
+    if events is None:
+        events = read_events(run_dir / "metrics.jsonl")
+    if "screen_seeds" in changed and _screen_kept(events, new["screen_seeds"]):
         changed.remove("screen_seeds")
     old_model, new_model = _model_settings(old), cfg.model_config().to_dict()
     if old_model is None:
@@ -462,11 +465,10 @@ def config_changes(run_dir: Path, cfg) -> list[str]:
     return changed + [f"model.{k}" for k in sorted(set(old_model) & set(new_model)) if old_model[k] != new_model[k]]
 
 
-def _screen_kept(run_dir: Path, screen_seeds: int) -> bool:
+def _screen_kept(events: list[dict], screen_seeds: int) -> bool:
     """The run's seed screen passed at a candidate that `screen_seeds` candidates also
     reach, so screening with that many would have kept the same seed (the same run)."""
-    passed = [e["candidate"] for e in read_events(run_dir / "metrics.jsonl")
-              if e.get("event") == "screen" and e.get("passed")]
+    passed = [e["candidate"] for e in events if e.get("event") == "screen" and e.get("passed")]
     return bool(passed) and passed[0] < max(screen_seeds, 1)
 
 
@@ -489,7 +491,7 @@ def run_state(run_dir: Path, spec: RunSpec, cfg, plan: Plan, ignore_lock: bool =
     if holder is not None:
         state.status, state.detail = "running", _holder_text(holder, run_dir / LOCK)
         return state
-    changed = config_changes(run_dir, cfg)
+    changed = config_changes(run_dir, cfg, events)
     end = finished_end(events, cfg)
     if changed:
         state.status, state.detail = "stale", f"config changed: {', '.join(changed)}"

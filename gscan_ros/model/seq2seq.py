@@ -83,8 +83,10 @@ class DecoderState:
     """What decoding a batch of commands carries from step to step (one row per command)."""
 
     text: torch.Tensor  # [n, tokens, H] encoded command
+    text_keys: torch.Tensor  # [n, tokens, H] the command attention's key projection of `text`
     text_mask: torch.Tensor  # [n, tokens] bool, False on padding tokens
     world: torch.Tensor  # [n, cells, H] projected features of the initial state
+    world_keys: torch.Tensor  # [n, cells, H] the world attention's key projection of `world`
     h: torch.Tensor  # [n, H] decoder LSTM state
     c: torch.Tensor  # [n, H] decoder LSTM cell
 
@@ -93,12 +95,15 @@ class DecoderState:
 
 
 class _Additive(nn.Module):
+    """Bahdanau attention. The keys do not change while a sequence decodes, so their
+    projection `k(keys)` is computed once per sequence (`_start`) and passed in."""
+
     def __init__(self, query: int, key: int, hidden: int):
         super().__init__()
         self.q, self.k, self.v = nn.Linear(query, hidden), nn.Linear(key, hidden, bias=False), nn.Linear(hidden, 1)
 
-    def forward(self, query, keys, mask=None):
-        score = self.v(torch.tanh(self.q(query)[:, None] + self.k(keys)))[..., 0]
+    def forward(self, query, keys, projected_keys, mask=None):
+        score = self.v(torch.tanh(self.q(query)[:, None] + projected_keys))[..., 0]
         if mask is not None:
             score = score.masked_fill(~mask, float("-inf"))
         weights = torch.softmax(score, -1)
@@ -152,12 +157,13 @@ class Seq2Seq(nn.Module):
         text, mask = self.encode_commands(commands)
         world = self.visual_proj(self.visual(*sparse_states(first_states, self.device)))
         n, H = len(commands), self.cfg.hidden
-        return DecoderState(text, mask, world, text.new_zeros(n, H), text.new_zeros(n, H))
+        return DecoderState(text, self.text_att.k(text), mask, world, self.world_att.k(world),
+                            text.new_zeros(n, H), text.new_zeros(n, H))
 
     def _decode(self, st: DecoderState, prev: torch.Tensor) -> torch.Tensor:
         """Action logits of one step after action `prev`; advances `st` in place."""
-        text_ctx, _ = self.text_att(st.h, st.text, st.text_mask)
-        world_ctx, _ = self.world_att(torch.cat([st.h, text_ctx], -1), st.world)
+        text_ctx, _ = self.text_att(st.h, st.text, st.text_keys, st.text_mask)
+        world_ctx, _ = self.world_att(torch.cat([st.h, text_ctx], -1), st.world, st.world_keys)
         x = torch.cat([self.drop(self.action_embed(prev)), text_ctx, world_ctx], -1)
         st.h, st.c = self.decoder(x, (st.h, st.c))
         return self.out(self.drop(torch.cat([st.h, text_ctx, world_ctx], -1)))

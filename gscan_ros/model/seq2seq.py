@@ -93,6 +93,10 @@ class DecoderState:
     def select(self, rows: torch.Tensor) -> "DecoderState":
         return DecoderState(*(getattr(self, f.name).index_select(0, rows) for f in dataclasses.fields(self)))
 
+    def prefix(self, n: int) -> "DecoderState":
+        """The first `n` rows (views, no copy)."""
+        return DecoderState(*(getattr(self, f.name)[:n] for f in dataclasses.fields(self)))
+
 
 class _Additive(nn.Module):
     """Bahdanau attention. The keys do not change while a sequence decodes, so their
@@ -184,16 +188,26 @@ class Seq2Seq(nn.Module):
         return self.teacher_forcing(batch)
 
     def teacher_forcing(self, batch: Seq2SeqBatch) -> TeacherOutput:
-        st = self._start(batch.commands, batch.first_states)
+        """Every step of the batch, gold previous actions fed. The rows are decoded longest
+        first, and step t runs only the rows still inside their episode (a prefix), so a
+        mixed batch does not decode its short episodes' padding."""
         targets = batch.targets.to(self.device)
-        prev = torch.full((len(targets),), self.sos, dtype=torch.long, device=self.device)
-        logits = []
-        for t in range(targets.shape[1]):
-            out = self._decode(st, prev)
-            logits.append(out)
-            prev = targets[:, t].clamp(min=0)
-        logits_t = torch.stack(logits, 1)
+        lengths = (targets >= 0).sum(1)
+        targets = targets[:, : int(lengths.max())]
         valid = targets >= 0
+        order = torch.argsort(lengths, descending=True, stable=True)
+        active = torch.bincount(lengths, minlength=targets.shape[1] + 1).flip(0).cumsum(0).flip(0)[1:].tolist()
+        rows = order.tolist()
+        st = self._start([batch.commands[i] for i in rows], np.asarray(batch.first_states)[rows])
+        gold = targets.index_select(0, order)
+        prev = torch.full((len(targets),), self.sos, dtype=torch.long, device=self.device)
+        logits_sorted = []
+        for t, n_t in enumerate(active):  # n_t rows have a step t
+            st = st.prefix(n_t)
+            out = self._decode(st, prev[:n_t])
+            logits_sorted.append(F.pad(out, (0, 0, 0, len(targets) - n_t)))
+            prev = gold[:, t].clamp(min=0)
+        logits_t = torch.stack(logits_sorted, 1).index_select(0, torch.argsort(order))
         nll = F.cross_entropy(logits_t[valid], targets[valid], reduction="none")
         per_example = nll.new_zeros(len(targets)).index_add(0, valid.nonzero()[:, 0], nll) / valid.sum(1)
         return TeacherOutput(per_example.mean(), logits_t[valid], nll, torch.zeros_like(nll))

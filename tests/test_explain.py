@@ -19,6 +19,7 @@ from gscan_ros.model.policy import Policy  # noqa: E402
 from gscan_ros.training.explain import (  # noqa: E402
     Reading,
     localized,
+    peak_distance,
     referent_word,
     size_correlation,
     size_ordering,
@@ -79,11 +80,12 @@ def test_localization_and_size_correlation_on_a_hand_built_case():
         Reading("visual", "walk to a big circle", big_target, peak_at(0, 2), np.zeros((6, 6))),
     ]
     assert localized(peak_at(0, 0), objects[0]) and not localized(peak_at(0, 1), objects[2])
+    assert peak_distance(peak_at(0, 1), objects[2]) == 1 and peak_distance(peak_at(3, 3), objects[0]) == 6
     assert size_correlation(ordering, small_target, "circle") == pytest.approx(0.5)
     s = summarize(readings)
     assert list(s) == ["test", "visual", "all"]
-    assert s["test"] == {"episodes": 2, "localization": 50.0, "localization_chance": 25.0, "size_episodes": 1,
-                         "size_spearman": pytest.approx(0.5)}
+    assert s["test"] == {"episodes": 2, "localization": 50.0, "localization_chance": 25.0, "beside": 50.0,
+                         "size_episodes": 1, "size_spearman": pytest.approx(0.5)}
     assert s["visual"]["localization"] == 100.0 and s["visual"]["size_episodes"] == 0
     assert math.isnan(s["visual"]["size_spearman"])
     assert s["all"]["localization"] == pytest.approx(200 / 3) and s["all"]["size_spearman"] == pytest.approx(0.5)

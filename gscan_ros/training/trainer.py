@@ -88,9 +88,9 @@ class RunFiles:
 
 def screen_passes(reading: dict) -> bool:
     """A screened candidate passes when its noun-phrase maps peak on the target at least
-    half as often as a uniform pick among the objects would. Inverted maps sit at 0-5 %
-    after 1,000 updates; right-signed ones at 11-51 % (and rising): docs/results.md, "Seed
-    screening"."""
+    half as often as a uniform pick among the objects would. Maps that mark a cell beside
+    the target (the slow basin) sit at 0-5 % after 1,000 updates; maps on the target at
+    11-51 % (and rising): docs/results.md, "Seed screening"."""
     return reading["localization"] > reading["localization_chance"] / 2
 
 

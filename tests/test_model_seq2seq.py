@@ -41,3 +41,17 @@ def test_closed_loop_follows_teacher_forcing_on_its_own_actions():
     for row, got in enumerate(per_row):
         want = [closed[t][row if t <= 2 else [0, 2].index(row)] for t in range(lengths[row])]
         torch.testing.assert_close(got, torch.stack(want), rtol=1e-5, atol=1e-5)
+
+
+def test_a_command_encodes_the_same_alone_and_beside_a_longer_one():
+    """The encoder runs on packed sequences: padding changes neither the outputs at a
+    command's own tokens nor its final state (the decoder's initial state)."""
+    torch.manual_seed(0)
+    model = Seq2Seq(Seq2SeqConfig(), command_vocabulary()).eval()
+    with torch.no_grad():
+        alone, final_alone, _ = model.encode_commands([COMMANDS[0]])
+        batch, final_batch, mask = model.encode_commands(COMMANDS[:2])
+    n = alone.shape[1]
+    assert mask[0].sum() == n and not mask[0, n:].any()
+    torch.testing.assert_close(batch[0, :n], alone[0])
+    torch.testing.assert_close(final_batch[0], final_alone[0])

@@ -1,10 +1,13 @@
-"""The gSCAN seq2seq baseline (Ruis et al. 2020; LauraRuis/multimodal_seq2seq_gSCAN), in the same framework.
+"""The gSCAN seq2seq baseline (Ruis et al. 2020; LauraRuis/multimodal_seq2seq_gSCAN "MM"), in the same framework.
 
-Command: embedding -> 1-layer BiLSTM (directions summed). World: the same 3-branch CNN,
-on the *initial* state only (the baseline never sees later states). Decoder: an LSTM
-fed the previous action, with additive (Bahdanau) attention over the command and
-attention over the 36 cells conditioned on the command context. Teacher forcing feeds
-gold previous actions; closed-loop decoding feeds its own.
+Command: embedding -> 1-layer BiLSTM on packed sequences (directions summed). World: the
+same 3-branch CNN, on the *initial* state only (the baseline never sees later states).
+Decoder (MM's `BahdanauAttentionDecoderRNN`, conditional attention on): an LSTM whose
+(h, c) start as tanh(W · the encoder's final state); each step reads the previous
+action's embedding, a Bahdanau context over the command (query h) and one over the cells
+(query tanh(W [h; command context])), and the logits come from the embedding, the new
+state and both contexts through two bias-free linear maps. Teacher forcing feeds gold
+previous actions; closed-loop decoding feeds its own.
 """
 from __future__ import annotations
 
@@ -36,7 +39,7 @@ class Seq2SeqConfig(SerializableConfig):
     """Hyper-parameters of the baseline (defaults: MM `all_experiments.sh`)."""
 
     embedding_dim: int = 25
-    """Command-token and previous-action embedding width."""
+    """Command-token embedding width (the previous action's embedding is `hidden` wide, as MM's)."""
     hidden: int = 100
     """Encoder (per direction, summed) and decoder LSTM width."""
     dropout: float = 0.3
@@ -82,11 +85,9 @@ class Seq2SeqBatch:
 class DecoderState:
     """What decoding a batch of commands carries from step to step (one row per command)."""
 
-    text: torch.Tensor  # [n, tokens, H] encoded command
-    text_keys: torch.Tensor  # [n, tokens, H] the command attention's key projection of `text`
+    text_keys: torch.Tensor  # [n, tokens, H] the command attention's keys (and values): k(encoder outputs)
     text_mask: torch.Tensor  # [n, tokens] bool, False on padding tokens
-    world: torch.Tensor  # [n, cells, H] projected features of the initial state
-    world_keys: torch.Tensor  # [n, cells, H] the world attention's key projection of `world`
+    world_keys: torch.Tensor  # [n, cells, H] the world attention's keys (and values): k(cell features)
     h: torch.Tensor  # [n, H] decoder LSTM state
     c: torch.Tensor  # [n, H] decoder LSTM cell
 
@@ -99,22 +100,27 @@ class DecoderState:
 
 
 class _Additive(nn.Module):
-    """Bahdanau attention. The keys do not change while a sequence decodes, so their
-    projection `k(keys)` is computed once per sequence (`_start`) and passed in."""
+    """Bahdanau attention as MM's `Attention`: v·tanh(q(query) + k(key)), no biases, and the
+    retrieved values are the projected keys themselves. The keys do not change while a
+    sequence decodes, so `k(keys)` is computed once per sequence (`_start`) and passed in."""
 
     def __init__(self, query: int, key: int, hidden: int):
         super().__init__()
-        self.q, self.k, self.v = nn.Linear(query, hidden), nn.Linear(key, hidden, bias=False), nn.Linear(hidden, 1)
+        self.q = nn.Linear(query, hidden, bias=False)
+        self.k = nn.Linear(key, hidden, bias=False)
+        self.v = nn.Linear(hidden, 1, bias=False)
 
-    def forward(self, query, keys, projected_keys, mask=None):
+    def forward(self, query, projected_keys, mask=None):
         score = self.v(torch.tanh(self.q(query)[:, None] + projected_keys))[..., 0]
         if mask is not None:
             score = score.masked_fill(~mask, float("-inf"))
         weights = torch.softmax(score, -1)
-        return torch.bmm(weights[:, None], keys)[:, 0], weights
+        return torch.bmm(weights[:, None], projected_keys)[:, 0], weights
 
 
 class Seq2Seq(nn.Module):
+    """MM's `Model` with its `BahdanauAttentionDecoderRNN` (conditional attention on)."""
+
     def __init__(self, cfg: Seq2SeqConfig, tokens: list[str]):
         super().__init__()
         self.cfg, self.tokens = cfg, list(tokens)
@@ -122,14 +128,16 @@ class Seq2Seq(nn.Module):
         E, H = cfg.embedding_dim, cfg.hidden
         self.embed = nn.Embedding(len(self.tokens) + 1, E, padding_idx=0)
         self.encoder = nn.LSTM(E, H, batch_first=True, bidirectional=True)
+        self.enc_to_dec = nn.Linear(H, H)  # the encoder's final state -> the decoder's initial (h, c)
         self.visual = VisualEncoder(ModelConfig(cnn_kernels=cfg.cnn_kernels, cnn_channels=cfg.cnn_channels,
                                                 cnn_dropout=cfg.cnn_dropout, grid_size=cfg.grid_size))
-        self.visual_proj = nn.Linear(self.visual.cfg.feature_dim, H)
-        self.action_embed = nn.Embedding(cfg.num_actions + 1, E)  # last id = start of sequence
-        self.decoder = nn.LSTMCell(E + 2 * H, H)
+        self.action_embed = nn.Embedding(cfg.num_actions + 1, H)  # last id = start of sequence
         self.text_att = _Additive(H, H, H)
-        self.world_att = _Additive(2 * H, H, H)
-        self.out = nn.Linear(3 * H, cfg.num_actions)
+        self.world_query = nn.Linear(2 * H, H)  # conditional attention: tanh(W [h; command context])
+        self.world_att = _Additive(H, self.visual.cfg.feature_dim, H)
+        self.decoder = nn.LSTMCell(3 * H, H)
+        self.pre_out = nn.Linear(4 * H, H, bias=False)
+        self.out = nn.Linear(H, cfg.num_actions, bias=False)
         self.drop = nn.Dropout(cfg.dropout)
 
     @property
@@ -140,7 +148,9 @@ class Seq2Seq(nn.Module):
     def device(self) -> torch.device:
         return self.out.weight.device
 
-    def encode_commands(self, commands: list[str]) -> tuple[torch.Tensor, torch.Tensor]:
+    def encode_commands(self, commands: list[str]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Encoder outputs [n, tokens, H] and final state [n, H] (both directions summed), and
+        the token mask. The LSTM runs on packed sequences, so padding never enters it."""
         from gscan_ros.language.tokens import tokenize
 
         ids = []
@@ -152,25 +162,27 @@ class Seq2Seq(nn.Module):
             ids.append([self.index[t] for t in toks])
         width = max(len(i) for i in ids)
         padded = torch.tensor([i + [0] * (width - len(i)) for i in ids], device=self.device)
-        mask = padded > 0
-        out, _ = self.encoder(self.drop(self.embed(padded)))
+        lengths = torch.tensor([len(i) for i in ids])
+        packed = nn.utils.rnn.pack_padded_sequence(self.drop(self.embed(padded)), lengths, batch_first=True,
+                                                   enforce_sorted=False)
+        out, (h_n, _) = self.encoder(packed)
+        out, _ = nn.utils.rnn.pad_packed_sequence(out, batch_first=True, total_length=width)
         H = self.cfg.hidden
-        return out[..., :H] + out[..., H:], mask
+        return out[..., :H] + out[..., H:], h_n[0] + h_n[1], padded > 0
 
     def _start(self, commands, first_states) -> DecoderState:
-        text, mask = self.encode_commands(commands)
-        world = self.visual_proj(self.visual(*sparse_states(first_states, self.device)))
-        n, H = len(commands), self.cfg.hidden
-        return DecoderState(text, self.text_att.k(text), mask, world, self.world_att.k(world),
-                            text.new_zeros(n, H), text.new_zeros(n, H))
+        text, final, mask = self.encode_commands(commands)
+        world = self.visual(*sparse_states(first_states, self.device))
+        h0 = torch.tanh(self.enc_to_dec(final))  # MM fills both the state and the cell with it
+        return DecoderState(self.text_att.k(text), mask, self.world_att.k(world), h0, h0)
 
     def _decode(self, st: DecoderState, prev: torch.Tensor) -> torch.Tensor:
         """Action logits of one step after action `prev`; advances `st` in place."""
-        text_ctx, _ = self.text_att(st.h, st.text, st.text_keys, st.text_mask)
-        world_ctx, _ = self.world_att(torch.cat([st.h, text_ctx], -1), st.world, st.world_keys)
-        x = torch.cat([self.drop(self.action_embed(prev)), text_ctx, world_ctx], -1)
-        st.h, st.c = self.decoder(x, (st.h, st.c))
-        return self.out(self.drop(torch.cat([st.h, text_ctx, world_ctx], -1)))
+        emb = self.drop(self.action_embed(prev))
+        text_ctx, _ = self.text_att(st.h, st.text_keys, st.text_mask)
+        world_ctx, _ = self.world_att(torch.tanh(self.world_query(torch.cat([st.h, text_ctx], -1))), st.world_keys)
+        st.h, st.c = self.decoder(torch.cat([emb, text_ctx, world_ctx], -1), (st.h, st.c))
+        return self.out(self.pre_out(torch.cat([emb, st.h, text_ctx, world_ctx], -1)))
 
     def make_batch(self, store, ids) -> Seq2SeqBatch:
         """Teacher-forcing inputs from an EpisodeStore: commands, initial states, targets."""

@@ -157,10 +157,21 @@ class Probe:
         self.executor.add_node(self.node)
         self.received: dict[str, list] = defaultdict(list)
 
-    def record(self, topic: str, msg_type, qos) -> list:
-        """Subscribe and keep every message of `topic` in `self.received[topic]`."""
-        self.node.create_subscription(msg_type, topic, self.received[topic].append, qos)
-        return self.received[topic]
+    def record(self, topic: str, msg_type, qos, since_ns: int | None = None) -> list:
+        """Subscribe and keep every message of `topic` in `self.received[topic]`; with
+        `since_ns`, only those published at or after it (source timestamp, ns). In a shared
+        domain a participant still shutting down from an earlier test can serve its older
+        latched samples to a new subscription."""
+        kept = self.received[topic]
+        if since_ns is None:
+            self.node.create_subscription(msg_type, topic, kept.append, qos)
+        else:
+            def keep_recent(msg, info) -> None:
+                if info["source_timestamp"] >= since_ns:
+                    kept.append(msg)
+
+            self.node.create_subscription(msg_type, topic, keep_recent, qos)
+        return kept
 
     def spin_until(self, predicate: Callable[[], bool], timeout: float = TIMEOUT, what: str = "condition") -> None:
         deadline = time.monotonic() + timeout

@@ -7,8 +7,8 @@
   publishes it live with this same function.
 - `referent_word`: the node whose map the noun phrase passes up to the verb.
 - `step0_readings` + `summarize`: per split, how often that map's argmax is the target's
-  cell (localization), and the Spearman correlation between the size-ordering value at
-  each object of the referred shape and its true size.
+  cell (localization) or 1-2 cells from it (beside), and the Spearman correlation between
+  the size-ordering value at each object of the referred shape and its true size.
 - `snapshots`: a run's `step_*.pt` files in update order (Fig. 4, metrics along training).
 """
 from __future__ import annotations

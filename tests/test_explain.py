@@ -18,7 +18,6 @@ from gscan_ros.language import get_parser  # noqa: E402
 from gscan_ros.model.policy import Policy  # noqa: E402
 from gscan_ros.training.explain import (  # noqa: E402
     Reading,
-    localized,
     peak_distance,
     referent_word,
     size_correlation,
@@ -79,7 +78,7 @@ def test_localization_and_size_correlation_on_a_hand_built_case():
         Reading("test", "walk to a circle", big_target, peak_at(0, 1), None),
         Reading("visual", "walk to a big circle", big_target, peak_at(0, 2), np.zeros((6, 6))),
     ]
-    assert localized(peak_at(0, 0), objects[0]) and not localized(peak_at(0, 1), objects[2])
+    assert peak_distance(peak_at(0, 0), objects[0]) == 0 and peak_distance(peak_at(0, 1), objects[2]) != 0
     assert peak_distance(peak_at(0, 1), objects[2]) == 1 and peak_distance(peak_at(3, 3), objects[0]) == 6
     assert size_correlation(ordering, small_target, "circle") == pytest.approx(0.5)
     s = summarize(readings)

@@ -160,15 +160,11 @@ def _ranks(a: np.ndarray) -> np.ndarray:
 
 
 def peak_distance(referent_map: np.ndarray, target: WorldObject) -> int:
-    """Grid (Manhattan) distance from the map's highest cell to the target's cell."""
+    """Grid (Manhattan) distance from the map's highest cell to the target's cell (0: the
+    map localizes the target)."""
     m = np.asarray(referent_map)
     row, col = np.unravel_index(int(np.argmax(m)), m.shape)
     return abs(int(row) - target.position[0]) + abs(int(col) - target.position[1])
-
-
-def localized(referent_map: np.ndarray, target: WorldObject) -> bool:
-    """The map's highest cell is the target's cell."""
-    return peak_distance(referent_map, target) == 0
 
 
 BESIDE = (1, 2)

@@ -6,7 +6,7 @@ import torch
 import torch.nn.functional as F
 
 from gscan_ros.model.compositional import ModelConfig
-from gscan_ros.model.fast_ops import ReluDrop, SegmentMatmul, keep_mask
+from gscan_ros.model.fast_ops import GruRecurrence, ReluDrop, SegmentMatmul, gru_update, keep_mask
 from gscan_ros.model.layout import SlotGroups
 from gscan_ros.model.sparse_encoder import shared_bits, sparse_states
 
@@ -120,6 +120,23 @@ def test_segment_matmul_gradients():
     ref = torch.cat([xs @ w[b] for b, xs in enumerate(x.split(sizes))])
     torch.testing.assert_close(out, ref)
     assert torch.autograd.gradcheck(lambda a, b: SegmentMatmul.apply(a, b, sizes), (x, w))
+
+
+@pytest.mark.parametrize("lanes", [[4, 4, 3, 3, 1], [2], [3, 1, 1, 1]])
+def test_gru_recurrence_is_the_cell_unrolled_with_gradients(lanes):
+    """Packed time-major steps whose lanes shrink (finished rows leave), each lane with its
+    own recurrent weights: the same states and gradients as `gru_update` step by step."""
+    gen = torch.Generator().manual_seed(3)
+    H, R = 3, lanes[0]
+    gx = torch.randn(sum(lanes), 3 * H, dtype=torch.float64, generator=gen, requires_grad=True)
+    wh = torch.randn(R, H, 3 * H, dtype=torch.float64, generator=gen, requires_grad=True)
+    bh = torch.randn(R, 1, 3 * H, dtype=torch.float64, generator=gen, requires_grad=True)
+    h, ref = torch.zeros(R, 1, H, dtype=torch.float64), []
+    for n, gx_t in zip(lanes, gx.split(lanes)):
+        h = gru_update(gx_t[:, None], torch.baddbmm(bh[:n], h[:n], wh[:n]), h[:n])
+        ref.append(h[:, 0])
+    torch.testing.assert_close(GruRecurrence.apply(gx, wh, bh, lanes), torch.cat(ref))
+    assert torch.autograd.gradcheck(lambda a, b, c: GruRecurrence.apply(a, b, c, lanes), (gx, wh, bh))
 
 
 

@@ -88,11 +88,13 @@ def test_teacher_forcing_equals_the_reference(settings, parse):
     ref_grads = gradients(ref_loss, net)
     if parse in ("semantic", "constituency") and net.cfg.uses_attention:
         assert sum(t.overlap.sum() for t in traces) > 0  # big|small heads do produce the overlap term
-    # all steps at once only where it applies (a module's state feeds nothing but its own
-    # cancelled attention term); with quantum 3 finished rows ride along on padded steps.
+    # The fast paths where they apply (all maps at once: a module's state does not move
+    # its map); with quantum 3 finished rows ride along on padded steps.
     paths = [teacher_forcing.stepwise]
     if not net.cfg.runs_every_gru:
         paths.insert(0, teacher_forcing.all_steps)
+    elif not net.cfg.state_in_attention:
+        paths.insert(0, teacher_forcing.level_major)
     for path in paths:
         for quantum in (1, 3):
             batch, order = teacher_batch(net.table, graphs, states, targets, quantum)

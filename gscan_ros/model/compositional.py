@@ -39,7 +39,7 @@ from gscan_ros.model.layout import Bound, Layout, child_maps
 from gscan_ros.model.modules import ModuleTable
 from gscan_ros.model.rollout import Rollout
 from gscan_ros.model.sparse_encoder import SparseConv
-from gscan_ros.model.teacher_forcing import TeacherBatch, TeacherOutput, all_steps, stepwise
+from gscan_ros.model.teacher_forcing import TeacherBatch, TeacherOutput, all_steps, level_major, stepwise
 from gscan_ros.world.types import GRID_SIZE, NUM_CHANNELS, SUPPORTED_GRID_SIZES, Action
 
 MESSAGES = ("attention", "state", "attention+state")
@@ -363,8 +363,8 @@ class CompositionalNetwork(nn.Module):
         """What `EpisodeStore.batch` rounds the number of rows alive per step up to: the
         step-by-step path re-slices per-row tensors whenever that number changes (8: few
         changes, few padded steps; docs/results.md "Why these fast paths"); the all-steps
-        path has no such cost, so no padding."""
-        return 8 if self.cfg.runs_every_gru else 1
+        and level-major paths slice only a few small tensors, so no padding."""
+        return 8 if self.cfg.state_in_attention else 1
 
     def forward(self, batch: TeacherBatch) -> TeacherOutput:
         """Teacher forcing: the call DistributedDataParallel wraps."""
@@ -373,9 +373,12 @@ class CompositionalNetwork(nn.Module):
     def teacher_forcing(self, batch: TeacherBatch) -> TeacherOutput:
         """Loss over a batch whose rows are sorted by length, states packed time-major;
         the batch moves to the network's device first (once per update). All steps at
-        once when only the root's GRU matters, else step by step (teacher_forcing.py)."""
+        once when only the root's GRU matters, level by level when every slot's GRU runs,
+        step by step when a module's state moves its map (teacher_forcing.py)."""
         batch = batch.to(self.device)
-        return stepwise(self, batch) if self.cfg.runs_every_gru else all_steps(self, batch)
+        if not self.cfg.runs_every_gru:
+            return all_steps(self, batch)
+        return stepwise(self, batch) if self.cfg.state_in_attention else level_major(self, batch)
 
     def loss(self, batch: TeacherBatch, logits: torch.Tensor, overlap: torch.Tensor) -> TeacherOutput:
         """Per example (Σ_t NLL + antonym_weight · Σ_t overlap) / (T+1), mean over the batch

@@ -1,7 +1,7 @@
 """Training throughput: examples/s and peak RSS, mixed batches vs the original one-command batches.
 
-    .venv/bin/python bench/train.py [--data DIR] [--config FILE] [--updates 10] [--warmup 2] [--threads 2]
-                                    [--device cpu|cuda|auto]
+    .venv/bin/python bench/train.py [--data DIR] [--config FILE] [--set KEY=VALUE ...] [--updates 10]
+                                    [--warmup 2] [--threads 2] [--device cpu|cuda|auto]
     .venv/bin/python bench/train.py --data data_gen/len --config configs/length.yaml   # split I, 12x12
 
 Without --data, a dataset of 6000 candidate examples is generated into a temp dir
@@ -26,7 +26,7 @@ from _data import dataset_or_generated
 
 
 def measure(data: str, mode: str, updates: int, warmup: int, threads: int, batch_size: int,
-            config: str | None = None, device: str = "cpu") -> dict:
+            config: str | None = None, device: str = "cpu", overrides: list[str] = ()) -> dict:
     import numpy as np
     import torch
 
@@ -42,12 +42,13 @@ def measure(data: str, mode: str, updates: int, warmup: int, threads: int, batch
     dev = resolve_device(device)
     keep_freed_memory()
     torch.manual_seed(0)
-    lexicon = Lexicon.named("wordnet")
-    parser = get_parser("semantic", lexicon)
+    cfg = TrainConfig.load(config, overrides)
+    lexicon = Lexicon.named(cfg.lexicon)
+    parser = get_parser(cfg.parser, lexicon)  # the config's parse: constituency graphs have more, wider modules
     t0 = time.time()
     store = EpisodeStore(iter_split(data, "train"), parser)
     cache_s = time.time() - t0
-    model = new_model(TrainConfig.load(config), parser, lexicon, store).to(dev)
+    model = new_model(cfg, parser, lexicon, store).to(dev)
     update = TrainStep(model, torch.optim.Adam(model.parameters(), lr=1e-3), store)
     order = batch_order(store, batch_size, mode, np.random.default_rng(0))
     order = sorted(order, key=len, reverse=True)  # full batches first (per_command: the original's 200-episode chunks)
@@ -80,18 +81,21 @@ def main() -> None:
     ap.add_argument("--config", help="training config whose model is measured (default: the built-in defaults; "
                                      "configs/length.yaml for split I data)")
     ap.add_argument("--device", default="cpu", choices=DEVICES, help="where the network runs")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="config override, as `gscan-ros train --set` (e.g. model.message=state, parser=dependency)")
     ap.add_argument("--mode", choices=BATCHING, help="(internal) measure one mode in this process")
     args = ap.parse_args()
     if args.mode:
         print(json.dumps(measure(args.data, args.mode, args.updates, args.warmup, args.threads, args.batch_size,
-                                 args.config, args.device)))
+                                 args.config, args.device, args.set)))
         return
     with dataset_or_generated(args.data, examples=6000) as data:
         results = {}
         for mode in BATCHING:
             cmd = [sys.executable, __file__, "--data", data, "--mode", mode, "--updates", str(args.updates),
                    "--warmup", str(args.warmup), "--threads", str(args.threads), "--batch-size", str(args.batch_size),
-                   "--device", args.device, *(["--config", args.config] if args.config else [])]
+                   "--device", args.device, *(["--config", args.config] if args.config else []),
+                   *(arg for item in args.set for arg in ("--set", item))]
             results[mode] = json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout)
     for mode, r in results.items():
         print(f"{mode:12s} {r['examples_per_s']:7.1f} examples/s  ({r['steps_per_s']:.0f} steps/s, mean batch "

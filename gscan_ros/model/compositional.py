@@ -259,12 +259,12 @@ class CompositionalNetwork(nn.Module):
 
     # -- one time step
     def step(self, bound: Bound, hidden: torch.Tensor, feats: torch.Tensor,
-             proj: torch.Tensor | None = None) -> StepResult:
+             proj: Sequence[torch.Tensor] | None = None) -> StepResult:
         """Advance every slot one decoding step on cell features obs_t = `feats` [n, cells, F],
         level by level (children before parents).
 
-        `proj` [n, cells, J, S, A]: the slots' feature projections, when precomputed
-        (teacher forcing computes them for all steps at once).
+        `proj`: the slots' feature projections per block ([n, cells, k, S_l, A] each), when
+        precomputed (teacher forcing computes them for all steps at once).
         """
         cfg = self.cfg
         n, cells = feats.shape[0], cfg.cells
@@ -281,7 +281,7 @@ class CompositionalNetwork(nn.Module):
                 if proj is None:
                     p = torch.bmm(feats, bound.feat_w(level)).view(n, cells, k, S, -1)
                 else:
-                    p = proj[:, :, lo:hi]
+                    p = proj[level]
                 state = None
                 if cfg.state_in_attention:
                     state = torch.einsum("nki,nkia->nka", h_prev, blk.att_state_w) + blk.att_state_b

@@ -160,7 +160,7 @@ class SlotBlock:
     """One level's slots [n, k] (n rows, k slots) with their parameters gathered from the
     bank. Fields a configuration does not use are None."""
 
-    children: torch.Tensor  # [n, k, S] source of each argument's map: 0 = none (all-ones map), j+1 = slot j
+    children: torch.Tensor  # [n, k, S_l] source of each argument's map: 0 = none (all-ones map), j+1 = slot j
     state_slot: torch.Tensor  # [n, k] slot whose state this slot reads: itself, or for an antonym shadow its word's
     att_unit: torch.Tensor | None = None  # [n, k] attention unit (module head); -1 on padding slots
     att_feat_b: torch.Tensor | None = None  # [n, k, S, A] bias of each argument's feature projection
@@ -218,25 +218,28 @@ class Bound:
     def gather(cls, layout: Layout, bank: "WordModuleBank") -> "Bound":
         """Every slot's parameters of `layout` gathered from `bank` (on the bank's device)."""
         cfg, device = bank.cfg, bank.out_w.device
-        A, S = cfg.att_dim, bank.max_slots
+        A, L, H = cfg.att_dim, cfg.rnn_layers, cfg.rnn_dim
         layout = layout.to(device)
         blocks = []
         for lo, hi in layout.level_spans:
             u, m = layout.unit[:, lo:hi], layout.module[:, lo:hi]
             B, k = u.shape
-            blk = SlotBlock(children=layout.children[:, lo:hi], state_slot=layout.state_slot[:, lo:hi])
+            # The level's argument slots: as many as its widest module has (a level of
+            # leaves needs 1 of the table's S), so no work goes into arguments that weigh 0.
+            S = max(int((layout.slot_mask[:, lo:hi].sum((0, 1)) > 0).sum()), 1)
+            blk = SlotBlock(children=layout.children[:, lo:hi, :S], state_slot=layout.state_slot[:, lo:hi])
             if cfg.uses_attention:
                 blk.att_unit = torch.where(layout.occupied[:, lo:hi], u, -1)
-                blk.att_feat_b = bank.att_feat_b[u]
+                blk.att_feat_b = bank.att_feat_b[u][:, :, :S]
                 # Output weights of the feature inputs; slots past a module's arity weigh 0.
-                score_w = bank.att_out_w[u][:, :, :S] * layout.slot_mask[:, lo:hi, :, None]
+                score_w = bank.att_out_w[u][:, :, :S] * layout.slot_mask[:, lo:hi, :S, None]
                 blk.score_w = score_w.reshape(B, k, S * A)
                 if cfg.size_map == "minmax":
                     blk.passes_minmax = layout.has_antonyms[:, lo:hi]
             if cfg.state_in_attention:
                 blk.att_state_w, blk.att_state_b = bank.att_state_w[u], bank.att_state_b[u]
             if cfg.passes_state:
-                blk.child_state_w, blk.child_state_b = bank.state_w[m], bank.state_b[m]
+                blk.child_state_w, blk.child_state_b = bank.state_w[m][:, :, : S * L * H], bank.state_b[m]
             if cfg.runs_every_gru:
                 # Real slots run their module's GRU; padding and antonym shadows (which read another slot's state) none.
                 own_state = layout.state_slot[:, lo:hi] == torch.arange(lo, hi, device=device)
@@ -253,15 +256,20 @@ class Bound:
         return self.readout.root_slot.shape[0]
 
     def feat_w(self, block: int) -> torch.Tensor:
-        """[n, F, k*S*A]: every slot's feature projection weights, so that one `bmm` projects
+        """[n, F, k*S_l*A]: every slot's feature projection weights, so that one `bmm` projects
         a step's features for the whole block. Built on first use: only closed-loop
         decoding needs it (teacher forcing precomputes the projections for all steps)."""
         if self._feat_w[block] is None:
-            units = self.blocks[block].att_unit.clamp(min=0)
+            blk = self.blocks[block]
+            units = blk.att_unit.clamp(min=0)
             n, k = units.shape
-            w = self.bank.att_feat_w[units]  # [n, k, S, F, A]
+            w = self.bank.att_feat_w[units][:, :, : blk.children.shape[2]]  # [n, k, S_l, F, A]
             self._feat_w[block] = w.permute(0, 3, 1, 2, 4).reshape(n, w.shape[3], -1)
         return self._feat_w[block]
+
+    def proj_widths(self) -> list[int]:
+        """Each block's share k*S_l*A of the flat feature projections (`teacher_forcing._projections`)."""
+        return [blk.children.shape[1] * blk.children.shape[2] * self.bank.cfg.att_dim for blk in self.blocks]
 
     def _map(self, fn) -> "Bound":
         return Bound([_map_tensors(blk, fn) for blk in self.blocks], _map_tensors(self.readout, fn),

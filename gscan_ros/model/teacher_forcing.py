@@ -123,7 +123,7 @@ def stepwise(net: "CompositionalNetwork", batch: TeacherBatch) -> TeacherOutput:
         if n != bound.rows:
             # Nested prefixes: each slice's backward is the size of the previous one.
             bound = bound.prefix(n)
-        res = net.step(bound, hidden[:n], feats_t, None if proj is None else proj[t])
+        res = net.step(bound, hidden[:n], feats_t, None if proj is None else _block_projections(bound, proj[t]))
         logits.append(res.logits)
         overlaps.append(res.overlap)
         hidden = res.hidden
@@ -134,12 +134,9 @@ def _all_maps(net: "CompositionalNetwork", bound: Bound, feats: torch.Tensor, rm
     """[N, J, cells]: the map every slot passes on at every step, row-major, level by
     level from the projections of all steps (`_projections`)."""
     rows, n, cells = rm.rows, feats.shape[0], net.cfg.cells
-    proj = _projections(net.bank, bound, feats, rm.sizes)
+    proj = _block_projections(bound, _projections(net.bank, bound, feats, rm.sizes))
     maps_done: list[torch.Tensor] = [feats.new_ones(n, 1, cells)]
-    # split, not slices: its backward is one concatenation, not a zero-filled full-size
-    # gradient per block.
-    proj_blocks = proj.split([hi - lo for lo, hi in bound.spans], 2)
-    for blk, p in zip(bound.blocks, proj_blocks):
+    for blk, p in zip(bound.blocks, proj):
         maps = net.attend(blk.att_feat_b.index_select(0, rows), blk.score_w.index_select(0, rows),
                           child_maps(maps_done, blk.children.index_select(0, rows)), p)
         passes_minmax = None if blk.passes_minmax is None else blk.passes_minmax.index_select(0, rows)
@@ -180,7 +177,7 @@ def _level_grus(bank: "WordModuleBank", bound: Bound, batch: TeacherBatch, x: to
             pool = torch.cat(levels, 1)
             children = blk.children.index_select(0, rows).reshape(n_steps, k * S, 1).expand(-1, -1, L * H)
             ch = pool.gather(1, children).reshape(n_steps * k, S * L * H)
-            inp.append(groups.linear(ch, bank.state_w, bank.state_b).view(n_steps, k, H))
+            inp.append(groups.linear(ch, bank.state_w[:, : S * L * H], bank.state_b).view(n_steps, k, H))
         inp = torch.cat(inp, -1).reshape(n_steps * k, -1)
         lane_module = module.clamp(min=0).reshape(-1)  # lanes = (row, slot), row-major: a step's lanes are a prefix
         lanes = [n * k for n in batch.active]
@@ -217,20 +214,31 @@ def _root_gru_logits(bank: "WordModuleBank", x: torch.Tensor, batch: TeacherBatc
 
 
 def _projections(bank: "WordModuleBank", bound: Bound, feats: torch.Tensor, sizes: list[int]) -> torch.Tensor:
-    """[N, cells, J, S, A]: every slot's feature projection at every step, for row-major
-    features (row b's steps are `sizes[b]` consecutive entries).
+    """[N, cells, P]: every slot's feature projection at every step, for row-major
+    features (row b's steps are `sizes[b]` consecutive entries); block l holds its
+    share k*S_l*A of P (`Bound.proj_widths`, `_block_projections`).
 
     (feats * map) W == map * (feats W), so the projections do not wait for the children's
-    maps. Each row gathers its slots' weights once ([B, F, J*S*A], a few MB); one matmul
+    maps. Each row gathers its slots' weights once ([B, F, P], a few MB); one matmul
     per row then projects all its steps for all its slots, reading the features once.
     """
-    units = torch.cat([blk.att_unit for blk in bound.blocks], 1).clamp(min=0)  # [B, J]
-    B, J = units.shape
-    _, S, Fd, A = bank.att_feat_w.shape
-    # index_select: its backward is index_add_, not a serial accumulating index_put
-    w = bank.att_feat_w.index_select(0, units.reshape(-1)).view(B, J, S, Fd, A)
-    w = w.permute(0, 3, 1, 2, 4).reshape(B, Fd, J * S * A)
-    return SegmentMatmul.apply(feats, w, sizes).view(feats.shape[0], feats.shape[1], J, S, A)
+    _, _, Fd, A = bank.att_feat_w.shape
+    weights = []
+    for blk in bound.blocks:
+        units = blk.att_unit.clamp(min=0)
+        (B, k), S = units.shape, blk.children.shape[2]
+        # index_select: its backward is index_add_, not a serial accumulating index_put
+        w = bank.att_feat_w[:, :S].index_select(0, units.reshape(-1)).view(B, k, S, Fd, A)
+        weights.append(w.permute(0, 3, 1, 2, 4).reshape(B, Fd, k * S * A))
+    return SegmentMatmul.apply(feats, torch.cat(weights, 2), sizes)
+
+
+def _block_projections(bound: Bound, proj: torch.Tensor) -> list[torch.Tensor]:
+    """Flat projections [n, cells, P] as one [n, cells, k, S_l, A] view per block.
+    (split, not slices: its backward is one concatenation, not a zero-filled full-size
+    gradient per block.)"""
+    return [p.unflatten(2, (blk.children.shape[1], blk.children.shape[2], -1))
+            for blk, p in zip(bound.blocks, proj.split(bound.proj_widths(), 2))]
 
 
 class _RowMajor:

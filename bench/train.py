@@ -89,6 +89,12 @@ def main() -> None:
         print(json.dumps(measure(args.data, args.mode, args.updates, args.warmup, args.threads, args.batch_size,
                                  args.config, args.device, args.set)))
         return
+    from gscan_ros.training.config import ConfigError, TrainConfig
+
+    try:  # a bad config or override is one line here, not a traceback from each child
+        TrainConfig.load(args.config, args.set)
+    except ConfigError as err:
+        raise SystemExit(f"bench/train.py: {err}")
     with dataset_or_generated(args.data, examples=6000) as data:
         results = {}
         for mode in BATCHING:

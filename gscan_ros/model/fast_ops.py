@@ -6,6 +6,8 @@ has a test against the plain computation it replaces (tests/test_model_fastpaths
 """
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import torch
 
@@ -107,86 +109,73 @@ class GruRecurrence(torch.autograd.Function):
     lanes, `lanes` non-increasing); wh [R, H, 3H], bh [R, 1, 3H]: each lane's recurrent
     weights; the state starts at zero. Returns every step's new state [N, H].
 
-    The forward runs without building a graph (6 ops a step: baddbmm, add, sigmoid,
-    addcmul, tanh, lerp) and keeps the gates; the backward is backpropagation through
-    time written out (one bmm and ~12 elementwise ops a step), and the weight gradients
-    are one batched product over all steps at the end. Plain autograd over `gru_update`
-    records ~25 nodes a step, and at these sizes (H = 20) the time goes into that
-    bookkeeping, not the arithmetic.
+    The forward builds no graph: 6 ops a step (baddbmm, add, sigmoid, addcmul, tanh,
+    lerp) writing into preallocated buffers whose per-step views come from one `split`
+    each. The backward is backpropagation through time written out (one baddbmm and 8
+    elementwise ops a step), and the weight gradients are one batched product over all
+    steps at the end. Plain autograd over `gru_update` records ~25 nodes a step, and at
+    these sizes (H = 20) the time goes into that bookkeeping, not the arithmetic.
     """
 
     @staticmethod
     def forward(ctx, gx, wh, bh, lanes):
-        H = wh.shape[1]
-        out = gx.new_empty(gx.shape[0], H)
-        rz_all = gx.new_empty(gx.shape[0], 2 * H)
-        cand_all, ghn_all = torch.empty_like(out), torch.empty_like(out)
-        h = gx.new_zeros(lanes[0], 1, H) if lanes else gx.new_zeros(0, 1, H)
-        start = 0
-        for n in lanes:
-            stop = start + n
-            gx_t, h = gx[start:stop], h[:n]
-            gh = torch.baddbmm(bh[:n], h, wh[:n])[:, 0]
-            rz = torch.sigmoid(gx_t[:, : 2 * H] + gh[:, : 2 * H], out=rz_all[start:stop])
-            ghn = ghn_all[start:stop]
-            ghn.copy_(gh[:, 2 * H :])
-            cand = torch.tanh(torch.addcmul(gx_t[:, 2 * H :], rz[:, :H], ghn), out=cand_all[start:stop])
-            h = torch.lerp(cand, h[:, 0], rz[:, H:], out=out[start:stop])[:, None]
-            start = stop
-        ctx.save_for_backward(wh, out, rz_all, cand_all, ghn_all)
+        N, H = gx.shape[0], wh.shape[1]
+        gx = gx.view(N, 1, 3 * H)
+        gh = gx.new_empty(N, 1, 3 * H)  # recurrent gates h W_h + b_h
+        rz = gx.new_empty(N, 1, 2 * H)  # reset and update gates
+        cand = gx.new_empty(N, 1, H)
+        out = gx.new_empty(N, 1, H)
+        steps = zip(lanes, gh.split(lanes), gx[..., : 2 * H].split(lanes), gh[..., : 2 * H].split(lanes),
+                    rz.split(lanes), gx[..., 2 * H :].split(lanes), rz[..., :H].split(lanes),
+                    gh[..., 2 * H :].split(lanes), cand.split(lanes), rz[..., H:].split(lanes), out.split(lanes))
+        h, w, b = gx.new_zeros(lanes[0] if lanes else 0, 1, H), wh, bh
+        for n, gh_t, gx_rz, gh_rz, rz_t, gx_n, r_t, gh_n, cand_t, z_t, out_t in steps:
+            if n != h.shape[0]:
+                h, w, b = h[:n], w[:n], b[:n]
+            torch.baddbmm(b, h, w, out=gh_t)
+            torch.sigmoid(torch.add(gx_rz, gh_rz), out=rz_t)
+            torch.tanh(torch.addcmul(gx_n, r_t, gh_n), out=cand_t)
+            h = torch.lerp(cand_t, h, z_t, out=out_t)  # cand + z (h - cand)
+        ctx.save_for_backward(wh, out, gh, rz, cand)
         ctx.lanes = lanes
-        return out
+        return out.view(N, H)
 
     @staticmethod
     def backward(ctx, grad_out):
-        wh, out, rz_all, cand_all, ghn_all = ctx.saved_tensors
-        lanes, H = ctx.lanes, wh.shape[1]
-        grad_out = grad_out.contiguous()
-        d_gates = grad_out.new_empty(out.shape[0], 3 * H)  # d(pre-activations): r, z, candidate
-        dgh_n = torch.empty_like(out)  # d(recurrent candidate gate) = d(candidate pre) * r
-        whT = wh.transpose(1, 2)
-        dh = grad_out.new_zeros(lanes[0] if lanes else 0, H)
-        stop = out.shape[0]
-        starts = []
-        for t in range(len(lanes) - 1, -1, -1):
-            n = lanes[t]
-            start = stop - n
-            starts.append(start)
-            h_prev = out[start - lanes[t - 1] : start - lanes[t - 1] + n] if t else None
-            dh_t = dh[:n].add_(grad_out[start:stop])
-            rz, cand, ghn = rz_all[start:stop], cand_all[start:stop], ghn_all[start:stop]
-            r, z = rz[:, :H], rz[:, H:]
-            g = d_gates[start:stop]
-            # h = cand + z (h_prev - cand)
-            dcand = dh_t - dh_t * z
-            torch.mul(dh_t, (h_prev if h_prev is not None else 0) - cand, out=g[:, H : 2 * H])  # dz
-            torch.mul(dcand, 1 - cand * cand, out=g[:, 2 * H :])  # d(candidate pre-activation)
-            torch.mul(g[:, 2 * H :], ghn, out=g[:, :H])  # dr
-            g[:, : 2 * H].mul_(rz * (1 - rz))  # through the sigmoids
-            torch.mul(g[:, 2 * H :], r, out=dgh_n[start:stop])
-            dgh = torch.cat((g[:, : 2 * H], dgh_n[start:stop]), 1)
-            dh_t.mul_(z).add_(torch.bmm(dgh[:, None], whT[:n])[:, 0])
-            stop = start
-        # The state before each step (0 at the first), lane-aligned with the step, and
-        # each packed step's lane, for the weight gradients in one go.
-        h_prev_all, lane_of = _previous_states(out, lanes)
-        dgh_all = torch.cat((d_gates[:, : 2 * H], dgh_n), 1)
+        wh, out, gh, rz, cand = ctx.saved_tensors
+        lanes, H, N = ctx.lanes, wh.shape[1], out.shape[0]
+        grad_out = grad_out.contiguous().view(N, 1, H)
+        # d(recurrent gates); the input gates' are the same except the candidate's (dgx_n)
+        dgh = grad_out.new_empty(N, 1, 3 * H)
+        dgx_n = grad_out.new_empty(N, 1, H)
+        dsig, dtanh = rz * (1 - rz), 1 - cand * cand
+        # The state each step started from, lane-aligned (step t's lanes are a prefix of step t-1's).
+        starts = [0, *itertools.accumulate(lanes[:-1])]
+        h_prev = torch.cat([out.new_zeros(lanes[0] if lanes else 0, 1, H)]
+                           + [out[s : s + n] for s, n in zip(starts, lanes[1:])])
+        steps = list(zip(lanes, grad_out.split(lanes), rz[..., :H].split(lanes), rz[..., H:].split(lanes),
+                         cand.split(lanes), h_prev.split(lanes), gh[..., 2 * H :].split(lanes), dtanh.split(lanes),
+                         dsig.split(lanes), dgh.split(lanes), dgh[..., :H].split(lanes),
+                         dgh[..., H : 2 * H].split(lanes), dgh[..., 2 * H :].split(lanes), dgx_n.split(lanes)))
+        dh_all, whT = grad_out.new_zeros(lanes[0] if lanes else 0, 1, H), wh.transpose(1, 2)
+        prefix = {}
+        for n, g_t, r_t, z_t, cand_t, hp_t, ghn_t, dtanh_t, dsig_t, dgh_t, dr_t, dz_t, dghn_t, dn_t in reversed(steps):
+            if n not in prefix:
+                prefix[n] = dh_all[:n], whT[:n]
+            dh, w = prefix[n]
+            dh.add_(g_t)
+            dcand = torch.addcmul(dh, dh, z_t, value=-1)  # dh (1 - z)
+            torch.mul(dh, hp_t - cand_t, out=dz_t)
+            torch.mul(dcand, dtanh_t, out=dn_t)  # d(candidate pre-activation) = d(input gate n)
+            torch.mul(dn_t, ghn_t, out=dr_t)
+            dgh_t[..., : 2 * H].mul_(dsig_t)  # through the sigmoids
+            torch.mul(dn_t, r_t, out=dghn_t)
+            torch.baddbmm(dh * z_t, dgh_t, w, out=dh)  # dh_{t-1}
+        dgx = torch.cat((dgh[..., : 2 * H], dgx_n), 2).view(N, 3 * H)
+        lane_of = torch.cat([torch.arange(n, device=out.device) for n in lanes]) if lanes else h_prev.new_zeros(0).long()
         grad_wh = grad_bh = None
         if ctx.needs_input_grad[1]:
-            grad_wh = wh.new_zeros(wh.shape).index_add_(0, lane_of, h_prev_all[:, :, None] * dgh_all[:, None, :])
+            grad_wh = wh.new_zeros(wh.shape).index_add_(0, lane_of, h_prev.transpose(1, 2) * dgh)
         if ctx.needs_input_grad[2]:
-            grad_bh = wh.new_zeros(wh.shape[0], 1, 3 * H).index_add_(0, lane_of, dgh_all[:, None])
-        return d_gates, grad_wh, grad_bh, None
-
-
-def _previous_states(out: torch.Tensor, lanes: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
-    """For packed time-major states `out` [N, H]: the state each step started from (zeros
-    at step 0) and each step's lane index."""
-    prev = torch.zeros_like(out)
-    start, lane_of = 0, []
-    for t, n in enumerate(lanes):
-        if t:
-            prev[start : start + n] = out[start - lanes[t - 1] : start - lanes[t - 1] + n]
-        lane_of.append(torch.arange(n, device=out.device))
-        start += n
-    return prev, torch.cat(lane_of) if lane_of else torch.zeros(0, dtype=torch.long, device=out.device)
+            grad_bh = wh.new_zeros(wh.shape[0], 1, 3 * H).index_add_(0, lane_of, dgh)
+        return dgx, grad_wh, grad_bh, None

@@ -14,8 +14,8 @@ plain computations, live beside this file:
 - `modules.py`: the module table (one module per key of the parses: arity, heads, antonyms);
 - `layout.py`: graphs as rows of slots grouped by level, parameters gathered per slot (`Bound`);
 - `sparse_encoder.py`: the convolutions as one embedding bag over the set input bits;
-- `teacher_forcing.py`: every step's loss of a batch of episodes, all steps at once when it can;
-- `fast_ops.py`: custom autograd functions, the dropout mask, the grouped GRU cell;
+- `teacher_forcing.py`: every step's loss of a batch of episodes, all maps at once when it can;
+- `fast_ops.py`: custom autograd functions (incl. a GRU's recurrence over packed steps), the dropout mask;
 - `rollout.py`: closed-loop decoding, one step per world state;
 - `reference.py`: the same network graph by graph, node by node, the test oracle.
 

@@ -22,9 +22,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from gscan_ros.errors import GscanError
+from gscan_ros.training.config import read_yaml
 from gscan_ros.training.paper_figures import (
     COLUMN_TITLES,
     K_SHOT_LABELS,
+    PAPER_EXAMPLES,
+    PAPER_EXAMPLES_DEFAULT,
     TABLE1,
     TABLE1_ROWS,
     TABLE1_SOURCE,
@@ -74,6 +77,7 @@ class RunResult:
     updates: int
     max_updates: int
     best_dev: float | None
+    batch_size: int | None  # from the run's config.yaml (None: not there)
     rows: dict[str, float]  # table row -> exact match %
     curve: list[tuple[int, float]]  # (update, dev exact match %) from metrics.jsonl
 
@@ -126,8 +130,19 @@ def _read_run(path: Path) -> RunResult:
                 rows[g_row if letter == "G" else letter] = float(split["exact_match"])
     group = Group(table, doc["column"], variant, doc.get("paper_column"), doc["title"])
     return RunResult(name=doc["run"], group=group, seed=int(doc["seed"]), updates=int(doc["updates"]),
-                     max_updates=int(doc["max_updates"]), best_dev=doc.get("best_dev_exact_match"), rows=rows,
+                     max_updates=int(doc["max_updates"]), best_dev=doc.get("best_dev_exact_match"),
+                     batch_size=_batch_size(path.parent / "config.yaml"), rows=rows,
                      curve=_curve(path.parent / "metrics.jsonl"))
+
+
+def _batch_size(config: Path) -> int | None:
+    """The batch size in a run's merged config.yaml (the runner writes it), if readable."""
+    try:
+        doc = read_yaml(config, f"config {str(config)!r}", ReportError)
+    except ReportError:
+        return None
+    value = doc.get("batch_size") if isinstance(doc, dict) else None
+    return int(value) if isinstance(value, int) else None
 
 
 def _length_rows(splits: dict) -> dict[str, float]:
@@ -309,8 +324,9 @@ def _table2(t: Tables) -> list[str]:
 
 def _budget(t: Tables) -> list[str]:
     out = ["## Runs and budget", "",
-           "| column | seeds | updates | budget | best dev exact match | dev curve, last 20 % of updates |",
-           "|---|---|---:|---:|---:|---|"]
+           "| column | seeds | updates | budget | training examples (the paper's) | best dev exact match "
+           "| dev curve, last 20 % of updates |",
+           "|---|---|---:|---:|---:|---:|---|"]
     for g in t.groups:
         runs = t.members[g]
         updates = sorted({r.updates for r in runs})
@@ -320,8 +336,20 @@ def _budget(t: Tables) -> list[str]:
         updates_text = str(updates[0]) if len(updates) == 1 else f"{updates[0]}–{updates[-1]}"
         trend_text = "–" if trend is None else f"{'rising' if trend >= RISING_POINTS else 'flat'} {trend:+.2f}"
         out.append(f"| {g.label} | {', '.join(str(r.seed) for r in runs)} | {updates_text} | "
-                   f"{'/'.join(str(b) for b in budgets)} | {Cell(best).text() if best else '–'} | {trend_text} |")
+                   f"{'/'.join(str(b) for b in budgets)} | {_examples_text(g.column, runs)} | "
+                   f"{Cell(best).text() if best else '–'} | {trend_text} |")
     return out + [""]
+
+
+def _examples_text(column: str, runs: list[RunResult]) -> str:
+    """Examples the runs trained on (mean over seeds) beside the paper's, e.g. '2.0M (30M: 1/15)'."""
+    paper = PAPER_EXAMPLES.get(column, PAPER_EXAMPLES_DEFAULT)
+    seen = [r.updates * r.batch_size for r in runs if r.batch_size]
+    if not seen:
+        return f"– ({paper / 1e6:.0f}M)"
+    mean = statistics.fmean(seen)
+    ours = f"{mean / 1e6:.1f}M" if mean >= 1e6 else f"{mean / 1e3:.0f}k"
+    return f"{ours} ({paper / 1e6:.0f}M: 1/{paper / mean:.0f})"
 
 
 def _notes(t: Tables) -> list[str]:

@@ -84,7 +84,9 @@ def test_localization_and_size_correlation_on_a_hand_built_case():
     s = summarize(readings)
     assert list(s) == ["test", "visual", "all"]
     assert s["test"] == {"episodes": 2, "localization": 50.0, "localization_chance": 25.0, "beside": 50.0,
-                         "size_episodes": 1, "size_spearman": pytest.approx(0.5)}
+                         "on_agent": 0.0, "size_episodes": 1, "size_spearman": pytest.approx(0.5)}
+    on_agent = summarize([Reading("test", "walk to a circle", big_target, peak_at(5, 5), None)])["test"]
+    assert on_agent["on_agent"] == 100.0 and on_agent["localization"] == 0.0  # the agent stands at (5, 5)
     assert s["visual"]["localization"] == 100.0 and s["visual"]["size_episodes"] == 0
     assert math.isnan(s["visual"]["size_spearman"])
     assert s["all"]["localization"] == pytest.approx(200 / 3) and s["all"]["size_spearman"] == pytest.approx(0.5)

@@ -159,12 +159,18 @@ def _ranks(a: np.ndarray) -> np.ndarray:
     return ranks
 
 
+def peak_cell(referent_map: np.ndarray) -> tuple[int, int]:
+    """(row, column) of the map's highest cell."""
+    m = np.asarray(referent_map)
+    row, col = np.unravel_index(int(np.argmax(m)), m.shape)
+    return int(row), int(col)
+
+
 def peak_distance(referent_map: np.ndarray, target: WorldObject) -> int:
     """Grid (Manhattan) distance from the map's highest cell to the target's cell (0: the
     map localizes the target)."""
-    m = np.asarray(referent_map)
-    row, col = np.unravel_index(int(np.argmax(m)), m.shape)
-    return abs(int(row) - target.position[0]) + abs(int(col) - target.position[1])
+    row, col = peak_cell(referent_map)
+    return abs(row - target.position[0]) + abs(col - target.position[1])
 
 
 BESIDE = (1, 2)
@@ -211,21 +217,23 @@ def step0_readings(policy: Policy, episodes: Sequence[Episode], batch_size: int 
 
 def summarize(readings: Iterable[Reading]) -> dict[str, dict]:
     """Per split, then "all": episodes; localization % (of episodes with a target and a
-    referent map); the same by chance for a uniform pick among the objects; episodes with a
-    defined size correlation and their mean Spearman (nan if none)."""
+    referent map); the same by chance for a uniform pick among the objects; beside % and
+    on-agent % (the map peaks 1-2 cells from the target, or on the agent's cell); episodes
+    with a defined size correlation and their mean Spearman (nan if none)."""
     groups: dict[str, list[Reading]] = defaultdict(list)
     for r in readings:
         groups[r.split].append(r)
         groups["all"].append(r)
     out = {}
     for split in sorted(groups, key=lambda s: (s == "all", SPLIT_LETTERS.get(s, "~"), s)):
-        hits, beside, chance, rhos = [], [], [], []
+        hits, beside, on_agent, chance, rhos = [], [], [], [], []
         for r in groups[split]:
             target = r.situation.target_object
             if target is not None and r.referent is not None:
                 distance = peak_distance(r.referent, target)
                 hits.append(distance == 0)
                 beside.append(distance in BESIDE)
+                on_agent.append(peak_cell(r.referent) == tuple(r.situation.agent_position))
                 chance.append(1.0 / len(r.situation.placed_objects))
             if r.ordering is not None:
                 rho = size_correlation(r.ordering, r.situation, CommandFrame.parse(r.command).shape)
@@ -236,6 +244,7 @@ def summarize(readings: Iterable[Reading]) -> dict[str, dict]:
             "localization": 100.0 * float(np.mean(hits)) if hits else float("nan"),
             "localization_chance": 100.0 * float(np.mean(chance)) if chance else float("nan"),
             "beside": 100.0 * float(np.mean(beside)) if beside else float("nan"),
+            "on_agent": 100.0 * float(np.mean(on_agent)) if on_agent else float("nan"),
             "size_episodes": len(rhos),
             "size_spearman": float(np.mean(rhos)) if rhos else float("nan"),
         }
@@ -244,12 +253,12 @@ def summarize(readings: Iterable[Reading]) -> dict[str, dict]:
 
 def metrics_table(summary: Mapping[str, Mapping]) -> str:
     """`summarize`'s result as a markdown table."""
-    lines = ["| split | episodes | localization % | chance % | beside % | size episodes | size Spearman |",
-             "|---|---:|---:|---:|---:|---:|---:|"]
+    lines = ["| split | episodes | localization % | chance % | beside % | on agent % | size episodes | size Spearman |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|"]
     for split, m in summary.items():
         name = f"{SPLIT_LETTERS[split]} {split}" if split in SPLIT_LETTERS else split
         lines.append(f"| {name} | {m['episodes']} | {m['localization']:.1f} | {m['localization_chance']:.1f} "
-                     f"| {m['beside']:.1f} | {m['size_episodes']} | {m['size_spearman']:.3f} |")
+                     f"| {m['beside']:.1f} | {m['on_agent']:.1f} | {m['size_episodes']} | {m['size_spearman']:.3f} |")
     return "\n".join(lines) + "\n"
 
 
@@ -288,12 +297,13 @@ def progression_metrics(paths: Sequence[tuple[int, Path]], episodes: Sequence[Ep
 
 
 def progression_table(rows: Sequence[Mapping]) -> str:
-    lines = ["| update | dev exact match % | localization % | beside % | size Spearman |", "|---:|---:|---:|---:|---:|"]
+    lines = ["| update | dev exact match % | localization % | beside % | on agent % | size Spearman |",
+             "|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         em = r["dev_exact_match"]
         em_text = "-" if em is None else f"{em:.1f}"
         if em is not None and r["validated_at"] not in (None, r["update"]):
             em_text += f" (at {r['validated_at']})"
         lines.append(f"| {r['update']} | {em_text} | {r['localization']:.1f} | {r['beside']:.1f} "
-                     f"| {r['size_spearman']:.3f} |")
+                     f"| {r['on_agent']:.1f} | {r['size_spearman']:.3f} |")
     return "\n".join(lines) + "\n"

@@ -94,7 +94,7 @@ def main() -> None:
     try:  # a bad config or override is one line here, not a traceback from each child
         TrainConfig.load(args.config, args.set)
     except ConfigError as err:
-        raise SystemExit(f"bench/train.py: {err}")
+        raise SystemExit(f"bench/train.py: {err}") from None
     with dataset_or_generated(args.data, examples=6000) as data:
         results = {}
         for mode in BATCHING:

@@ -271,7 +271,7 @@ class CompositionalNetwork(nn.Module):
         L, H = cfg.rnn_layers, cfg.rnn_dim
         maps_done: list[torch.Tensor] = [feats.new_ones(n, 1, cells)]  # pool index 0 = 'no child'
         hid_done: list[torch.Tensor] = [feats.new_zeros(n, 1, L * H)]
-        for level, ((lo, hi), blk) in enumerate(zip(bound.spans, bound.blocks)):
+        for level, blk in enumerate(bound.blocks):
             k, S = blk.children.shape[1], blk.children.shape[2]
             gru_in = []
             h_prev = None  # h_{t-1}^w; antonym shadows read the state of the word they shadow

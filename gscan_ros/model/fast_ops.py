@@ -172,7 +172,8 @@ class GruRecurrence(torch.autograd.Function):
             torch.mul(dn_t, r_t, out=dghn_t)
             torch.baddbmm(dh * z_t, dgh_t, w, out=dh)  # dh_{t-1}
         dgx = torch.cat((dgh[..., : 2 * H], dgx_n), 2).view(N, 3 * H)
-        lane_of = torch.cat([torch.arange(n, device=out.device) for n in lanes]) if lanes else h_prev.new_zeros(0).long()
+        lane_of = torch.cat([torch.arange(n, device=out.device) for n in lanes]
+                            or [torch.zeros(0, dtype=torch.long, device=out.device)])
         grad_wh = grad_bh = None
         if ctx.needs_input_grad[1]:
             grad_wh = wh.new_zeros(wh.shape).index_add_(0, lane_of, h_prev.transpose(1, 2) * dgh)

@@ -163,12 +163,12 @@ class SlotBlock:
     children: torch.Tensor  # [n, k, S_l] source of each argument's map: 0 = none (all-ones map), j+1 = slot j
     state_slot: torch.Tensor  # [n, k] slot whose state this slot reads: itself, or for an antonym shadow its word's
     att_unit: torch.Tensor | None = None  # [n, k] attention unit (module head); -1 on padding slots
-    att_feat_b: torch.Tensor | None = None  # [n, k, S, A] bias of each argument's feature projection
-    score_w: torch.Tensor | None = None  # [n, k, S*A] att_out_w's argument columns, 0 past the module's arity
+    att_feat_b: torch.Tensor | None = None  # [n, k, S_l, A] bias of each argument's feature projection
+    score_w: torch.Tensor | None = None  # [n, k, S_l*A] att_out_w's argument columns, 0 past the module's arity
     passes_minmax: torch.Tensor | None = None  # [n, k] bool: size_map='minmax' and an antonym-pair module
     att_state_w: torch.Tensor | None = None  # [n, k, L*H, A] (attention_state='add')
     att_state_b: torch.Tensor | None = None  # [n, k, A]
-    child_state_w: torch.Tensor | None = None  # [n, k, S*L*H, H] children's states -> GRU input (pass_state)
+    child_state_w: torch.Tensor | None = None  # [n, k, S_l*L*H, H] children's states -> GRU input (pass_state)
     child_state_b: torch.Tensor | None = None  # [n, k, H]
     gru_module: torch.Tensor | None = None  # [n, k] module whose GRU the slot runs; -1: none (padding, shadows)
 

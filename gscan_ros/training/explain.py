@@ -169,8 +169,11 @@ def peak_cell(referent_map: np.ndarray) -> tuple[int, int]:
 def peak_distance(referent_map: np.ndarray, target: WorldObject) -> int:
     """Grid (Manhattan) distance from the map's highest cell to the target's cell (0: the
     map localizes the target)."""
-    row, col = peak_cell(referent_map)
-    return abs(row - target.position[0]) + abs(col - target.position[1])
+    return _grid_distance(peak_cell(referent_map), target.position)
+
+
+def _grid_distance(a: Sequence[int], b: Sequence[int]) -> int:
+    return abs(a[0] - b[0]) + abs(a[1] - b[1])
 
 
 BESIDE = (1, 2)
@@ -230,10 +233,11 @@ def summarize(readings: Iterable[Reading]) -> dict[str, dict]:
         for r in groups[split]:
             target = r.situation.target_object
             if target is not None and r.referent is not None:
-                distance = peak_distance(r.referent, target)
+                peak = peak_cell(r.referent)
+                distance = _grid_distance(peak, target.position)
                 hits.append(distance == 0)
                 beside.append(distance in BESIDE)
-                on_agent.append(peak_cell(r.referent) == tuple(r.situation.agent_position))
+                on_agent.append(peak == tuple(r.situation.agent_position))
                 chance.append(1.0 / len(r.situation.placed_objects))
             if r.ordering is not None:
                 rho = size_correlation(r.ordering, r.situation, CommandFrame.parse(r.command).shape)

@@ -6,7 +6,7 @@ import torch
 import torch.nn.functional as F
 
 from gscan_ros.model.compositional import ModelConfig
-from gscan_ros.model.fast_ops import GruRecurrence, ReluDrop, SegmentMatmul, gru_update, keep_mask
+from gscan_ros.model.fast_ops import BagSum, GruRecurrence, ReluDrop, SegmentMatmul, gru_update, keep_mask
 from gscan_ros.model.layout import SlotGroups
 from gscan_ros.model.sparse_encoder import shared_bits, sparse_states
 
@@ -109,6 +109,21 @@ def test_shared_bits_are_the_bits_every_state_of_the_group_has():
         shi = shared_off[g + 1] if g + 1 < len(shared_off) else len(shared)
         mine = set(own[own_off[n]:hi].tolist()) | set(shared[shared_off[g]:shi].tolist()) - {width - 1}
         assert mine == set(np.flatnonzero(flat[n]))
+
+
+def test_bag_sum_is_the_embedding_bag_with_its_gradient():
+    """Empty bags and a row twice in one bag included (the incidence then holds a 2)."""
+    torch.manual_seed(0)
+    weight = torch.randn(9, 4, dtype=torch.float64, requires_grad=True)
+    rows = torch.tensor([3, 1, 3, 0, 8, 8, 2, 5])
+    starts = torch.tensor([0, 3, 3, 6, 8])  # bags of 3, 0, 3, 2 and 0 rows
+    grad = torch.randn(5, 4, dtype=torch.float64)
+    (expected,) = torch.autograd.grad(F.embedding_bag(rows, weight, starts, mode="sum"), weight, grad)
+    out = BagSum.apply(rows, weight, starts)
+    (got,) = torch.autograd.grad(out, weight, grad)
+    assert torch.equal(out, F.embedding_bag(rows, weight, starts, mode="sum"))
+    assert torch.allclose(got, expected, atol=1e-12)
+    assert got[3].allclose(2 * grad[0]) and got[8].allclose(2 * grad[2])
 
 
 def test_segment_matmul_gradients():

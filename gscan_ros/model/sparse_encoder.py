@@ -11,7 +11,8 @@ On larger grids the Toeplitz matrix grows as cells^2 (50M entries on 12x12), and
 it and its gradient on every training update costs more than the features themselves.
 There, training sums rows of the kernel canvas instead: one bag per (state, output cell)
 over the canvas rows that link each set bit to that cell, so the weight and its gradient
-stay the size of the conv kernels. Closed loop keeps the cached Toeplitz matrix.
+stay the size of the conv kernels; their weight gradient is a sparse product
+(`fast_ops.BagSum`). Closed loop keeps the cached Toeplitz matrix.
 """
 from __future__ import annotations
 
@@ -20,7 +21,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from gscan_ros.model.fast_ops import ReluDrop, keep_mask
+from gscan_ros.model.fast_ops import BagSum, ReluDrop, keep_mask
 
 # Training on grids this wide or wider uses per-cell canvas bags instead of the Toeplitz
 # matrix (docs/results.md, "Sparse encoder on 12x12": equal at 6x6 with 50 episodes).
@@ -106,17 +107,17 @@ class SparseConv:
         if groups is None:
             bits, starts = _with_extra_index(indices, offsets, torch.full((n,), bias_bit, device=indices.device))
             rows, starts = self.per_cell_bags(bits, starts)
-            return F.embedding_bag(rows, weight, starts, mode="sum")
+            return BagSum.apply(rows, weight, starts)
         (shared, shared_offsets), own, own_offsets = shared_bits(indices, offsets, groups, bias_bit + 1)
         rows, starts = self.per_cell_bags(shared, shared_offsets)
-        group_sums = F.embedding_bag(rows, weight, starts, mode="sum")  # [groups*cells, F]
+        group_sums = BagSum.apply(rows, weight, starts)  # [groups*cells, F]
         # Each (state, cell) bag: the state's own bits + its group's sum at that cell (rows
         # appended to the weight), or the bias row for a state without a group.
         cells = torch.arange(self.cells, device=indices.device)
         extra = torch.where((groups >= 0)[:, None], weight.shape[0] + groups[:, None] * self.cells + cells,
                             weight.shape[0] - 1)
         rows, starts = self.per_cell_bags(own, own_offsets, extra)
-        return F.embedding_bag(rows, torch.cat([weight, group_sums]), starts, mode="sum")
+        return BagSum.apply(rows, torch.cat([weight, group_sums]), starts)
 
     def toeplitz(self, convs: nn.ModuleList, scale: float = 1.0) -> torch.Tensor:
         """[cells*C, cells*F]: row (cell q, channel k) -> contribution to every (cell p, feature o),

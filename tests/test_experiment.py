@@ -257,6 +257,12 @@ def test_report_is_byte_identical_and_refuses_to_overwrite(results, tmp_path, ca
     first, second = tmp_path / "one.md", tmp_path / "two.md"
     assert report(results, first, "--no-curves") == 0 and report(results[::-1], second, "--no-curves") == 0
     assert first.read_bytes() == second.read_bytes()
+    assert "Reading (hand-written" not in first.read_text()
+    (results[0] / "reading.md").write_text("Seq2seq trained on 1/800 of the examples.\n")
+    assert report(results, tmp_path / "read.md", "--no-curves") == 0
+    text = (tmp_path / "read.md").read_text()
+    assert text.endswith(f"### Reading (hand-written, `{results[0].as_posix()}/reading.md`)\n\n"
+                         "Seq2seq trained on 1/800 of the examples.\n")
     assert report(results, first, "--no-curves") == 1
     assert "--overwrite" in capsys.readouterr().err
     assert report([results[0], results[0]], tmp_path / "three.md", "--no-curves") == 1  # a run found twice

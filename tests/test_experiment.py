@@ -244,6 +244,10 @@ def test_report_puts_mean_and_std_beside_the_paper(results, tmp_path):
     assert "| G k=10 | –<br>paper 2.04 ± 0.95 | –<br>paper 8.48 ± 4.72 | –<br>paper 34.28 ± 6.59 " \
            "| 40.00<br>paper 36.91 ± 5.13 |" in text  # k_shot 11 is the paper's k=10; its A is not Table 1's
     assert "| 15 | 75.00<br>paper 92.06 ± 1.94 |" in text and "| ≥ 18 | 25.00<br>paper 53.67 ± 4.00 |" in text
+    histogram = text.split("### Split I at every target length")[1].split("##")[0]
+    assert [line for line in histogram.splitlines() if line.startswith("| 1")] == [
+        "| 14 | 100.0 (5) |", "| 15 | 75.0 (4) |", "| 16 | 50.0 (2) |", "| 18 | 0.0 (3) |"]
+    assert "| 20 | 100.0 (1) |" in histogram
     assert "| Semantic | 0, 1 | 1000 | 1000 | 50k (30M: 1/600) | 20.25 ± 13.79 | rising +10.25 |" in text
     assert "| Seq2Seq | 0 | 1000 | 1000 | 50k (40M: 1/800) |" in text  # the paper's seq2seq is Ruis et al.'s
     assert "- Semantic, A: ours 92.00 ± 2.83 vs paper 96.73 ± 0.58 (-4.73); dev curve still rising" in text

@@ -80,6 +80,7 @@ class RunResult:
     batch_size: int | None  # from the run's config.yaml (None: not there)
     rows: dict[str, float]  # table row -> exact match %
     curve: list[tuple[int, float]]  # (update, dev exact match %) from metrics.jsonl
+    lengths: dict[int, tuple[float, int]]  # split I runs: target length -> (correct, episodes), splits pooled
 
 
 # ------------------------------------------------------------------------------ loading
@@ -119,7 +120,9 @@ def _read_run(path: Path) -> RunResult:
     if data.get("split_kind") == "length":
         cut = doc.get("max_train_target_length") or data.get("cut_off_target_length") or 15
         table, variant, rows = 2, f"<={cut}", _length_rows(doc["splits"])
+        lengths = _length_counts(doc["splits"])
     else:
+        lengths = {}
         k_shot = int(data.get("k_shot", 1))
         g_row = f"G k={K_SHOT_LABELS[k_shot]}" if k_shot in K_SHOT_LABELS else f"G k_shot={k_shot}"
         table, variant = 1, "" if k_shot == 1 else g_row
@@ -132,7 +135,7 @@ def _read_run(path: Path) -> RunResult:
     return RunResult(name=doc["run"], group=group, seed=int(doc["seed"]), updates=int(doc["updates"]),
                      max_updates=int(doc["max_updates"]), best_dev=doc.get("best_dev_exact_match"),
                      batch_size=_batch_size(path.parent / "config.yaml"), rows=rows,
-                     curve=_curve(path.parent / "metrics.jsonl"))
+                     curve=_curve(path.parent / "metrics.jsonl"), lengths=lengths)
 
 
 def _batch_size(config: Path) -> int | None:
@@ -159,6 +162,17 @@ def _length_rows(splits: dict) -> dict[str, float]:
     if "target_lengths" in splits:
         rows["I"] = float(splits["target_lengths"]["exact_match"])
     return rows
+
+
+def _length_counts(splits: dict) -> dict[int, tuple[float, int]]:
+    """Correct episodes and episodes per target length, pooled over the splits."""
+    counts: dict[int, list[float]] = {}
+    for split in splits.values():
+        for length, cell in split.get("by_target_length", {}).items():
+            pooled = counts.setdefault(int(length), [0.0, 0])
+            pooled[0] += cell["exact_match"] * cell["examples"] / 100
+            pooled[1] += cell["examples"]
+    return {length: (correct, int(n)) for length, (correct, n) in sorted(counts.items())}
 
 
 def _curve(metrics: Path) -> list[tuple[int, float]]:
@@ -326,6 +340,32 @@ def _table2(t: Tables) -> list[str]:
             continue
         texts = (_cell_text(c, _paper2(g, row)) for c, g in zip(cells, groups))
         out.append(f"| {_length_name(row)} | " + " | ".join(texts) + " |")
+    return out + [""] + _length_histogram(t, groups)
+
+
+def _length_histogram(t: Tables, groups: list[Group]) -> list[str]:
+    """Exact match at every target length (the paper gives 15, 16, 17 and >= 18 only),
+    the episodes of a group's seeds pooled."""
+    pooled = []
+    for g in groups:
+        counts: dict[int, list[float]] = {}
+        for run in t.members[g]:
+            for length, (correct, n) in run.lengths.items():
+                cell = counts.setdefault(length, [0.0, 0])
+                cell[0] += correct
+                cell[1] += n
+        pooled.append(counts)
+    lengths = sorted({length for counts in pooled for length in counts})
+    if not lengths:
+        return []
+    out = ["### Split I at every target length", "",
+           "Exact match % (episodes), test and target_lengths pooled, and a column's seeds pooled.", "",
+           "| target length | " + " | ".join(g.label for g in groups) + " |",
+           "|---|" + "---:|" * len(groups)]
+    for length in lengths:
+        cells = [f"{100 * c[length][0] / c[length][1]:.1f} ({c[length][1]})" if c.get(length, (0, 0))[1] else "–"
+                 for c in pooled]
+        out.append(f"| {length} | " + " | ".join(cells) + " |")
     return out + [""]
 
 

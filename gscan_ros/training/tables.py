@@ -9,8 +9,9 @@ Runs are grouped by column and by what they were trained on:
 A cell is the mean ± sample std over the group's seeds; the paper's figure sits beside
 it. Notes flag every cell further from the paper's mean than the paper's std, say
 whether that column's dev curve is still rising, and check the paper's qualitative
-claims; a results folder's `reading.md` (why ours differs, by hand) follows them. The markdown depends on the results only (sorted, fixed formats), so the same
-files give byte-identical output.
+claims; a results folder's `reading.md` (why ours differs, by hand) follows them. The
+markdown depends on the results only (sorted, fixed formats), so the same files give
+byte-identical output.
 """
 from __future__ import annotations
 
@@ -151,14 +152,13 @@ def _batch_size(config: Path) -> int | None:
 def _length_rows(splits: dict) -> dict[str, float]:
     """Exact match for target lengths 15, 16, 17 and >= 18 pooled over the splits, and
     split I (target_lengths) as a whole."""
-    pooled: dict[str, list[float]] = {row: [0.0, 0.0] for row in TABLE2_ROWS}
-    for split in splits.values():
-        for length, cell in split.get("by_target_length", {}).items():
-            row = ">=18" if int(length) >= 18 else length
-            if row in pooled:
-                pooled[row][0] += cell["exact_match"] * cell["examples"]
-                pooled[row][1] += cell["examples"]
-    rows = {row: total / count for row, (total, count) in pooled.items() if count}
+    pooled: dict[str, list[float]] = {row: [0.0, 0] for row in TABLE2_ROWS}
+    for length, (correct, n) in _length_counts(splits).items():
+        row = ">=18" if length >= 18 else str(length)
+        if row in pooled:
+            pooled[row][0] += correct
+            pooled[row][1] += n
+    rows = {row: 100 * correct / n for row, (correct, n) in pooled.items() if n}
     if "target_lengths" in splits:
         rows["I"] = float(splits["target_lengths"]["exact_match"])
     return rows

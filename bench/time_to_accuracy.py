@@ -15,11 +15,18 @@ the updates reported are the kept candidate's.
 One row per validation, then as the last line exactly one of
     time-to-accuracy: reached 95.0% dev exact match after U updates, M.M minutes (X ex/s)
     time-to-accuracy: not reached (best B.B% after U updates, M.M minutes)
+
+`--seeds S1 S2 ...` runs one seed after the other into RUN_DIR/s<seed> and ends with the
+median and range over the seeds of the updates and minutes to 90 % and to the target (a
+seed that did not get there counts as slower than every seed that did), as the last line
+    time-to-accuracy: median over N seeds reached 95.0% after U updates, M.M minutes (K of N reached)
+or  time-to-accuracy: median over N seeds not reached (K of N reached)
 """
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -50,53 +57,82 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--config", required=True, metavar="FILE", help="training config (YAML)")
     ap.add_argument("--target", type=float, default=95.0, metavar="PERCENT", help="dev exact match to reach (95)")
     ap.add_argument("--max-minutes", type=float, default=30.0, metavar="M", help="time limit (30)")
-    ap.add_argument("--seed", type=int, default=0, help="run seed (0)")
+    seeds = ap.add_mutually_exclusive_group()
+    seeds.add_argument("--seed", type=int, default=0, help="run seed (0)")
+    seeds.add_argument("--seeds", type=int, nargs="+", metavar="S",
+                       help="several runs, one per seed, into RUN_DIR/s<seed>; ends with the median over them")
     ap.add_argument("--threads", type=int, default=2, help="torch threads (2)")
     ap.add_argument("--data", default=None, metavar="DIR", help=f"dataset (default: {DEFAULT_DATA}, made once)")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                     help="override a training config key (as `gscan-ros train --set`)")
     ap.add_argument("--validate-every", type=int, default=250, metavar="N", help="updates between validations (250)")
     ap.add_argument("--out", default=None, metavar="RUN_DIR",
-                    help="run directory (default: runs/tta/<config>_s<seed>)")
+                    help="run directory (default: runs/tta/<config>_s<seed>; with --seeds, the folder of the "
+                         "seeds' run directories, default runs/tta/<config>)")
     mode = ap.add_mutually_exclusive_group()
     mode.add_argument("--resume", action="store_true", help="continue RUN_DIR from its last.pt")
     mode.add_argument("--overwrite", action="store_true", help="replace a run already in RUN_DIR")
     args = ap.parse_args(argv)
 
     from gscan_ros.errors import GscanError
-    from gscan_ros.training.config import TrainConfig
-    from gscan_ros.training.trainer import train
 
-    out = Path(args.out or f"runs/tta/{Path(args.config).stem}_s{args.seed}")
+    stem = Path(args.config).stem
     try:
         if not 0 < args.target <= 100:
             raise GscanError(f"--target must be in (0, 100], got {args.target}")
         if args.max_minutes <= 0 or args.validate_every <= 0 or args.threads < 1:
             raise GscanError("--max-minutes, --validate-every and --threads must be positive")
-        cfg = TrainConfig.load(args.config, [
-            *args.overrides, f"seed={args.seed}", f"threads={args.threads}", f"max_minutes={args.max_minutes}",
-            f"target_dev_exact_match={args.target}", f"max_dev_examples={DEV_EPISODES}",
-            f"validate_every={args.validate_every}", f"checkpoint_every={args.validate_every}",
-            f"log_every={min(50, args.validate_every)}",
-        ])
         data = ensure_data(args.data)
-        header = [f"{'updates':>8} {'minutes':>8} {'ex/s':>7} {'dev EM %':>9}  slowest groups"]
-
-        def row(m: dict) -> None:
-            if header:
-                print(header.pop(), flush=True)
-            groups = sorted(((em, f"{axis}={value}") for axis, values in m["dev_by_group"].items()
-                             for value, em in values.items()), key=lambda x: x[0])[:3]
-            worst = ", ".join(f"{name} {em:.0f}" for em, name in groups)
-            rate = throughput(out / "metrics.jsonl")
-            print(f"{m['step']:>8} {m['elapsed_s'] / 60:>8.1f} {rate:>7.0f} {m['dev_exact_match']:>9.1f}  {worst}",
-                  flush=True)
-
-        result = train(cfg, data, out, resume=args.resume, overwrite=args.overwrite, progress=False,
-                       on_validation=row)
+        if args.seeds is None:
+            run_seed(args, args.seed, Path(args.out or f"runs/tta/{stem}_s{args.seed}"), data, args.resume)
+            return 0
+        root = Path(args.out or f"runs/tta/{stem}")
+        marks = []
+        for seed in args.seeds:
+            print(f"== seed {seed} -> {root / f's{seed}'}", flush=True)
+            out = root / f"s{seed}"
+            # --resume continues the seeds that have started and starts the others
+            marks.append(run_seed(args, seed, out, data, resume=args.resume and (out / "last.pt").is_file()))
     except GscanError as exc:
         print(f"time_to_accuracy: error: {exc}", file=sys.stderr)
         return 1
+    summarize(marks, args.seeds, args.target)
+    return 0
+
+
+def first_at(validations: list[dict], percent: float) -> tuple[int, float] | None:
+    """(updates, minutes) of the first validation at or above `percent`."""
+    hit = next((r for r in validations if r["dev_exact_match"] >= percent), None)
+    return None if hit is None else (hit["step"], hit["elapsed_s"] / 60)
+
+
+def run_seed(args: argparse.Namespace, seed: int, out: Path, data: str,
+             resume: bool) -> dict[float, tuple[int, float] | None]:
+    """Train one seed to the target, print its rows and its last line; returns the
+    (updates, minutes) at which it first reached 90 % and the target (None: not reached)."""
+    from gscan_ros.training.config import TrainConfig
+    from gscan_ros.training.trainer import train
+
+    cfg = TrainConfig.load(args.config, [
+        *args.overrides, f"seed={seed}", f"threads={args.threads}", f"max_minutes={args.max_minutes}",
+        f"target_dev_exact_match={args.target}", f"max_dev_examples={DEV_EPISODES}",
+        f"validate_every={args.validate_every}", f"checkpoint_every={args.validate_every}",
+        f"log_every={min(50, args.validate_every)}",
+    ])
+    header = [f"{'updates':>8} {'minutes':>8} {'ex/s':>7} {'dev EM %':>9}  slowest groups"]
+
+    def row(m: dict) -> None:
+        if header:
+            print(header.pop(), flush=True)
+        groups = sorted(((em, f"{axis}={value}") for axis, values in m["dev_by_group"].items()
+                         for value, em in values.items()), key=lambda x: x[0])[:3]
+        worst = ", ".join(f"{name} {em:.0f}" for em, name in groups)
+        rate = throughput(out / "metrics.jsonl")
+        print(f"{m['step']:>8} {m['elapsed_s'] / 60:>8.1f} {rate:>7.0f} {m['dev_exact_match']:>9.1f}  {worst}",
+              flush=True)
+
+    result = train(cfg, data, out, resume=resume, overwrite=args.overwrite, progress=False,
+                   on_validation=row)
     records = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     validations = [r for r in records if r.get("event") == "validation"]
     for r in records:
@@ -107,16 +143,42 @@ def main(argv: list[str] | None = None) -> int:
         elif r.get("event") == "screen_end":
             print(f"screen: training seed {r['seed']}; {r['screen_updates']} updates spent on "
                   f"{r['candidates']} candidate(s) are in the minutes below")
-    hit = next((r for r in validations if r["dev_exact_match"] >= args.target), None)
-    rate = throughput(out / "metrics.jsonl")
+    marks = {percent: first_at(validations, percent) for percent in sorted({90.0, args.target})}
+    hit = marks[args.target]
     if hit is not None:
-        print(f"time-to-accuracy: reached {args.target:.1f}% dev exact match after {hit['step']} updates, "
-              f"{hit['elapsed_s'] / 60:.1f} minutes ({rate:.0f} ex/s)")
+        print(f"time-to-accuracy: reached {args.target:.1f}% dev exact match after {hit[0]} updates, "
+              f"{hit[1]:.1f} minutes ({throughput(out / 'metrics.jsonl'):.0f} ex/s)")
     else:
         last = validations[-1] if validations else {"step": result["step"], "elapsed_s": 0.0}
         print(f"time-to-accuracy: not reached (best {max(result['best_dev_exact_match'], 0):.1f}% after "
               f"{last['step']} updates, {last['elapsed_s'] / 60:.1f} minutes)")
-    return 0
+    return marks
+
+
+def median_of(values: list[tuple[int, float] | None]) -> tuple[int, float] | None:
+    """The median seed's (updates, minutes), a seed that never got there being the slowest
+    (None when that is the median seed); ordered by minutes. An even count takes the
+    slower of the two middle seeds."""
+    ordered = sorted(values, key=lambda v: math.inf if v is None else v[1])
+    return ordered[len(ordered) // 2]
+
+
+def summarize(marks: list[dict], seeds: list[int], target: float) -> None:
+    for percent in sorted({90.0, target}):
+        values = [m[percent] for m in marks]
+        got = [v for v in values if v is not None]
+        spread = (f"; range {min(u for u, _ in got)}-{max(u for u, _ in got)} updates, "
+                  f"{min(t for _, t in got):.1f}-{max(t for _, t in got):.1f} minutes" if got else "")
+        per_seed = ", ".join(f"seed {s}: " + ("not reached" if v is None else f"{v[0]} upd. / {v[1]:.1f} min")
+                             for s, v in zip(seeds, values))
+        print(f"{percent:.0f} %: {per_seed}{spread}")
+    reached = sum(m[target] is not None for m in marks)
+    median = median_of([m[target] for m in marks])
+    if median is None:
+        print(f"time-to-accuracy: median over {len(seeds)} seeds not reached ({reached} of {len(seeds)} reached)")
+    else:
+        print(f"time-to-accuracy: median over {len(seeds)} seeds reached {target:.1f}% after {median[0]} updates, "
+              f"{median[1]:.1f} minutes ({reached} of {len(seeds)} reached)")
 
 
 if __name__ == "__main__":

@@ -313,13 +313,16 @@ def render(runs: list[RunResult], curves_link: str | None, readings: list[tuple[
     return "\n".join(out).rstrip("\n") + "\n"
 
 
+def _head(first: str, columns: list[str]) -> list[str]:
+    """A markdown table's header and alignment rows: a label column, then right-aligned figures."""
+    return ["| " + " | ".join([first, *columns]) + " |", "|---|" + "---:|" * len(columns)]
+
+
 def _table1(t: Tables) -> list[str]:
     columns = t.table1_columns()
     if not columns:
         return []
-    out = ["## Table 1: compositional splits A–H", "",
-           "| split | " + " | ".join(title for _, title, _ in columns) + " |",
-           "|---|" + "---:|" * len(columns)]
+    out = ["## Table 1: compositional splits A–H", "", *_head("split", [title for _, title, _ in columns])]
     for row in t.table1_rows():
         cells = [_cell_text(t.cell1(column, row), _paper1(paper, row)) for column, _, paper in columns]
         out.append(f"| {row} | " + " | ".join(cells) + " |")
@@ -332,8 +335,7 @@ def _table2(t: Tables) -> list[str]:
         return []
     out = ["## Table 2: split I, exact match by target length", "",
            "Columns: the longest target length trained on. Row I: the whole target_lengths split.", "",
-           "| target length | " + " | ".join(g.label for g in groups) + " |",
-           "|---|" + "---:|" * len(groups)]
+           *_head("target length", [g.label for g in groups])]
     for row in LENGTH_ROWS:
         cells = [t.cell2(g, row) for g in groups]
         if row not in TABLE2_ROWS and all(c is None for c in cells):
@@ -360,8 +362,7 @@ def _length_histogram(t: Tables, groups: list[Group]) -> list[str]:
         return []
     out = ["### Split I at every target length", "",
            "Exact match % (episodes), test and target_lengths pooled, and a column's seeds pooled.", "",
-           "| target length | " + " | ".join(g.label for g in groups) + " |",
-           "|---|" + "---:|" * len(groups)]
+           *_head("target length", [g.label for g in groups])]
     for length in lengths:
         cells = [f"{100 * c[length][0] / c[length][1]:.1f} ({c[length][1]})" if c.get(length, (0, 0))[1] else "–"
                  for c in pooled]

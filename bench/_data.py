@@ -1,4 +1,5 @@
-"""Shared by the benches: a dataset to measure on when `--data` is not given."""
+"""Shared by the benches: a dataset to measure on when `--data` is not given, and a fresh
+model with its training update on a dataset's batches."""
 from __future__ import annotations
 
 import contextlib
@@ -18,3 +19,25 @@ def dataset_or_generated(data: str | None, examples: int, seed: int = 0, fmt: st
     with tempfile.TemporaryDirectory(prefix="gscan_bench_") as tmp:
         generate_dataset(tmp, GenerationConfig(seed=seed, max_examples=examples), workers=1, fmt=fmt)
         yield tmp
+
+
+def training_update(data: str, config: str | None, batch_size: int, lr: float = 1e-3):
+    """(model, update step, mixed batches in a seeded order) for the config's model, parser
+    and lexicon on `data`'s train split; torch's threads and seed are the caller's."""
+    import numpy as np
+    import torch
+
+    from gscan_ros.language.lexicon import Lexicon
+    from gscan_ros.language.registry import get_parser
+    from gscan_ros.training.batches import EpisodeStore, batch_order
+    from gscan_ros.training.config import TrainConfig
+    from gscan_ros.training.step import TrainStep
+    from gscan_ros.training.trainer import iter_split, new_model
+
+    cfg = TrainConfig.load(config)
+    lexicon = Lexicon.named(cfg.lexicon)
+    parser = get_parser(cfg.parser, lexicon)
+    store = EpisodeStore(iter_split(data, "train"), parser)
+    model = new_model(cfg, parser, lexicon, store)
+    step = TrainStep(model, torch.optim.Adam(model.parameters(), lr=lr), store)
+    return model, step, batch_order(store, batch_size, "mixed", np.random.default_rng(0))

@@ -14,6 +14,8 @@ import argparse
 import time
 import types
 
+from _data import training_update
+
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -28,27 +30,16 @@ def main() -> None:
     import torch
     import torch.nn.functional as F
 
-    from gscan_ros.language.lexicon import Lexicon
-    from gscan_ros.language.registry import get_parser
     from gscan_ros.model import sparse_encoder
     from gscan_ros.model.runtime import configure_torch
-    from gscan_ros.training.batches import EpisodeStore, batch_order
-    from gscan_ros.training.config import TrainConfig
-    from gscan_ros.training.step import TrainStep
-    from gscan_ros.training.trainer import iter_split, new_model
 
     configure_torch(args.threads)
     torch.manual_seed(0)
-    cfg = TrainConfig.load(args.config)
-    lexicon = Lexicon.named(cfg.lexicon)
-    parser = get_parser(cfg.parser, lexicon)
-    store = EpisodeStore(iter_split(args.data, "train"), parser)
-    model = new_model(cfg, parser, lexicon, store)
+    model, step, order = training_update(args.data, args.config, args.batch_size, lr=1e-4)
     if not model.encoder.sparse.per_cell:
         raise SystemExit(f"{args.data}: a {model.cfg.grid_size}x{model.cfg.grid_size} grid trains on the Toeplitz "
                          f"matrix, not the per-cell bags")
-    step = TrainStep(model, torch.optim.Adam(model.parameters(), lr=1e-4), store)
-    order = batch_order(store, args.batch_size, "mixed", np.random.default_rng(0))[: args.updates + 1]
+    order = order[: args.updates + 1]
     torch_backward = types.SimpleNamespace(apply=lambda rows, weight, starts: F.embedding_bag(
         rows, weight, starts, mode="sum"))
     fast_backward = sparse_encoder.BagSum

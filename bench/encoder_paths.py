@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from _data import dataset_or_generated
+from _data import dataset_or_generated, training_update
 
 
 def main() -> None:
@@ -28,23 +28,12 @@ def main() -> None:
     import numpy as np
     import torch
 
-    from gscan_ros.language.lexicon import Lexicon
-    from gscan_ros.language.registry import get_parser
     from gscan_ros.model.runtime import configure_torch
-    from gscan_ros.training.batches import EpisodeStore, batch_order
-    from gscan_ros.training.config import TrainConfig
-    from gscan_ros.training.step import TrainStep
-    from gscan_ros.training.trainer import iter_split, new_model
 
     configure_torch(args.threads)
     torch.manual_seed(0)
     with dataset_or_generated(args.data, examples=6000) as data:
-        lexicon = Lexicon.named("wordnet")
-        parser = get_parser("semantic", lexicon)
-        store = EpisodeStore(iter_split(data, "train"), parser)
-        model = new_model(TrainConfig.load(args.config), parser, lexicon, store)
-        step = TrainStep(model, torch.optim.Adam(model.parameters(), lr=1e-3), store)
-        order = batch_order(store, args.batch_size, "mixed", np.random.default_rng(0))
+        model, step, order = training_update(data, args.config, args.batch_size)
         if len(order) < 2 * args.updates + 2:
             raise SystemExit(f"{len(order)} batches in the data; {2 * args.updates + 2} needed")
         times: dict[bool, list[float]] = {True: [], False: []}

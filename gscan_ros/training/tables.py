@@ -120,8 +120,8 @@ def _read_run(path: Path) -> RunResult:
     data = doc["data"]
     if data.get("split_kind") == "length":
         cut = doc.get("max_train_target_length") or data.get("cut_off_target_length") or 15
-        table, variant, rows = 2, f"<={cut}", _length_rows(doc["splits"])
         lengths = _length_counts(doc["splits"])
+        table, variant, rows = 2, f"<={cut}", _length_rows(lengths, doc["splits"])
     else:
         lengths = {}
         k_shot = int(data.get("k_shot", 1))
@@ -149,11 +149,11 @@ def _batch_size(config: Path) -> int | None:
     return int(value) if isinstance(value, int) else None
 
 
-def _length_rows(splits: dict) -> dict[str, float]:
-    """Exact match for target lengths 15, 16, 17 and >= 18 pooled over the splits, and
-    split I (target_lengths) as a whole."""
+def _length_rows(lengths: dict[int, tuple[float, int]], splits: dict) -> dict[str, float]:
+    """Exact match for target lengths 15, 16, 17 and >= 18 from the per-length counts
+    (`_length_counts`), and split I (target_lengths) as a whole."""
     pooled: dict[str, list[float]] = {row: [0.0, 0] for row in TABLE2_ROWS}
-    for length, (correct, n) in _length_counts(splits).items():
+    for length, (correct, n) in lengths.items():
         row = ">=18" if length >= 18 else str(length)
         if row in pooled:
             pooled[row][0] += correct

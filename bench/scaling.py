@@ -2,12 +2,13 @@
 N `torchrun` processes x T/N threads (gloo, 127.0.0.1), in training examples/s.
 
     .venv/bin/python bench/scaling.py [--data DIR] [--config FILE] [--processes 2] [--threads 2]
-                                      [--updates 60] [--batch-size 200]
+                                      [--updates 60] [--batch-size 200] [--set KEY=VALUE ...]
 
 Without --data, 6000 candidate examples are generated into a temp dir (seed 0), as for
 bench/train.py. Both runs train the same batches (the global batch is --batch-size either
 way); the rate is the mean `examples_per_s` of the runs' metrics lines after the first
-(warm-up), so data loading and the final validation are not counted.
+(warm-up), so data loading and the final validation are not counted. Seed screening is
+off (`screen_seeds=0`): its candidates' updates would count as the run's.
 """
 from __future__ import annotations
 
@@ -30,7 +31,8 @@ def train_command(data: str, out: Path, threads: int, args: argparse.Namespace) 
             *(["--config", args.config] if args.config else []),
             "--set", f"threads={threads}", "--set", f"max_updates={args.updates}",
             "--set", f"batch_size={args.batch_size}", "--set", f"log_every={LOG_EVERY}",
-            "--set", "validate_every=1000000", "--set", "checkpoint_every=1000000", "--set", "max_dev_examples=8"]
+            "--set", "validate_every=1000000", "--set", "checkpoint_every=1000000", "--set", "max_dev_examples=8", "--set", "screen_seeds=0",
+            *(arg for item in args.set for arg in ("--set", item))]
 
 
 def rate(run: Path) -> float:
@@ -49,6 +51,8 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2, help="threads in all (the processes share them)")
     ap.add_argument("--updates", type=int, default=60)
     ap.add_argument("--batch-size", type=int, default=200)
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="config override for both runs, as `gscan-ros train --set`")
     args = ap.parse_args()
     if args.threads % args.processes:
         raise SystemExit("--threads must be a multiple of --processes")

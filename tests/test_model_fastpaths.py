@@ -6,7 +6,8 @@ import torch
 import torch.nn.functional as F
 
 from gscan_ros.model.compositional import ModelConfig
-from gscan_ros.model.fast_ops import BagSum, GruRecurrence, ReluDrop, SegmentMatmul, gru_update, keep_mask
+from gscan_ros.model.fast_ops import (BagSum, ContiguousGrad, GruRecurrence, ReluDrop, RowGather, SegmentMatmul,
+                                     gru_update, keep_mask)
 from gscan_ros.model.layout import SlotGroups
 from gscan_ros.model.sparse_encoder import shared_bits, sparse_states
 
@@ -124,6 +125,49 @@ def test_bag_sum_is_the_embedding_bag_with_its_gradient():
     assert torch.equal(out, F.embedding_bag(rows, weight, starts, mode="sum"))
     assert torch.allclose(got, expected, atol=1e-12)
     assert got[3].allclose(2 * grad[0]) and got[8].allclose(2 * grad[2])
+
+
+def test_row_gather_is_the_indexing_gather_with_its_gradient():
+    """A row used many times, one used once and one never used (its gradient is 0)."""
+    weight = torch.randn(5, 3, dtype=torch.float64, requires_grad=True)
+    index = torch.tensor([[4, 0, 4], [1, 4, 0]])
+    out = RowGather.apply(weight, index, *RowGather.plan(index, 5))
+    assert torch.equal(out, weight[index])
+    assert torch.autograd.gradcheck(lambda w: RowGather.apply(w, index, *RowGather.plan(index, 5)), (weight,))
+    (grad,) = torch.autograd.grad(out.sum(), weight)
+    assert grad[:, 0].tolist() == [2.0, 1.0, 0.0, 0.0, 3.0]
+
+
+def test_contiguous_grad_is_the_identity_and_hands_back_a_contiguous_gradient():
+    x = torch.randn(4, 6, requires_grad=True)
+    seen = []
+    y = ContiguousGrad.apply(x)
+    assert torch.equal(y, x)
+    x.register_hook(lambda g: seen.append(g.is_contiguous()))
+    y.backward(torch.randn(6, 4).T)  # a transposed, non-contiguous upstream gradient
+    assert seen == [True]
+
+
+@pytest.mark.parametrize("grid", [6, 12])
+def test_gathered_toeplitz_weight_is_the_plain_one_with_gradients(grid):
+    """`SparseConv.weight` (one gather of canvas rows) against `plain_weight` (sparse
+    placement product, permute, bias row), values and conv gradients, with dropout's scale."""
+    torch.manual_seed(grid)
+    net = make_net(ModelConfig(grid_size=grid))
+    enc = net.encoder
+    upstream = None
+    results = []
+    for build in (enc.sparse.weight, enc.sparse.plain_weight):
+        enc.zero_grad()
+        w = build(enc.convs, 1.25)
+        if upstream is None:
+            upstream = torch.randn(w.shape)
+        w.backward(upstream)
+        results.append((w.detach(), [p.grad.clone() for p in enc.convs.parameters()]))
+    (fast, fast_grads), (plain, plain_grads) = results
+    assert torch.equal(fast, plain)
+    for got, want in zip(fast_grads, plain_grads):
+        torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-4)
 
 
 def test_segment_matmul_gradients():

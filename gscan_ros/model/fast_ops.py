@@ -77,6 +77,50 @@ class BagSum(torch.autograd.Function):
         return None, torch.sparse.mm(incidence, grad.contiguous()), None
 
 
+class RowGather(torch.autograd.Function):
+    """`weight[index]` (index [R, W] of rows of weight [V, F] -> [R, W, F]) for a fixed
+    index that is used many times, whose backward sums each weight row's gradient as one
+    embedding bag over the index's positions sorted by row (`RowGather.plan`, made once).
+    torch's own backward of the gather accumulates row by row in a serial `index_put`."""
+
+    @staticmethod
+    def plan(index: torch.Tensor, rows: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """(positions of `index` sorted by row, each row's first place in them)."""
+        flat = index.reshape(-1)
+        order = torch.argsort(flat, stable=True)
+        counts = torch.bincount(flat, minlength=rows)
+        starts = torch.zeros(rows, dtype=torch.long, device=index.device)
+        starts[1:] = counts.cumsum(0)[:-1]
+        return order, starts
+
+    @staticmethod
+    def forward(ctx, weight: torch.Tensor, index: torch.Tensor, order: torch.Tensor,
+                starts: torch.Tensor) -> torch.Tensor:
+        ctx.save_for_backward(order, starts)
+        return torch.nn.functional.embedding(index, weight)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        order, starts = ctx.saved_tensors
+        flat = grad.contiguous().view(-1, grad.shape[-1])
+        return torch.nn.functional.embedding_bag(order, flat, starts, mode="sum"), None, None, None
+
+
+class ContiguousGrad(torch.autograd.Function):
+    """Identity whose backward makes the gradient contiguous before it goes on. Put after
+    a gather whose output is then permuted and sliced: `index_select`'s backward
+    (`index_add_`) on that strided gradient ran ~10x slower than a copy plus a
+    contiguous `index_add_` (docs/results.md, "Training throughput")."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor) -> torch.Tensor:
+        return x.view_as(x)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor) -> torch.Tensor:
+        return grad.contiguous()
+
+
 class SegmentMatmul(torch.autograd.Function):
     """out[seg b] = x[seg b] @ w[b]: x [N, R, K] cut along N into consecutive segments of
     `sizes`, w [B, K, W] one matrix per segment -> [N, R, W]. Both directions are one

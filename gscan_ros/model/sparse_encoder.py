@@ -21,7 +21,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from gscan_ros.model.fast_ops import BagSum, ReluDrop, keep_mask
+from gscan_ros.model.fast_ops import BagSum, ReluDrop, RowGather, keep_mask
 
 # Training on grids this wide or wider uses per-cell canvas bags instead of the Toeplitz
 # matrix (docs/results.md, "Sparse encoder on 12x12": equal at 6x6 with 50 episodes).
@@ -56,6 +56,7 @@ class SparseConv:
         canvas_rows = offset.view(self.cells, 1, self.cells) * in_channels + torch.arange(in_channels).view(1, -1, 1)
         bias_row = torch.full((1, self.cells), (2 * g - 1) ** 2 * in_channels)
         self._canvas_rows = torch.cat([canvas_rows.reshape(-1, self.cells), bias_row])
+        self._gather_plan = RowGather.plan(self._canvas_rows, (2 * g - 1) ** 2 * in_channels + 1)
         self.per_cell = grid_size >= PER_CELL_MIN_GRID
 
     def _kernel_bank(self, convs: nn.ModuleList) -> torch.Tensor:
@@ -135,7 +136,20 @@ class SparseConv:
     def weight(self, convs: nn.ModuleList, scale: float = 1.0) -> torch.Tensor:
         """[cells*C + 1, cells*F]: the Toeplitz matrix plus a last row holding the bias of
         every cell, so the bias rides in the embedding bag instead of a full extra pass;
-        all times `scale`."""
+        all times `scale`.
+
+        The plain form is `toeplitz` and the bias row; here both are one gather of
+        kernel-canvas rows (`canvas_weight`), each (input bit, output cell) reading the
+        row of the offset between them, and the backward is one bag sum (`RowGather`):
+        no sparse product, permuted copy or concatenation of the 12 MB matrix."""
+        canvas = self.canvas_weight(convs, scale)
+        if self._canvas_rows.device != canvas.device:
+            self._canvas_rows = self._canvas_rows.to(canvas.device)
+            self._gather_plan = tuple(t.to(canvas.device) for t in self._gather_plan)
+        return RowGather.apply(canvas, self._canvas_rows, *self._gather_plan).view(self._canvas_rows.shape[0], -1)
+
+    def plain_weight(self, convs: nn.ModuleList, scale: float = 1.0) -> torch.Tensor:
+        """`weight` as its definition: the Toeplitz matrix and the bias row, concatenated."""
         bias = torch.cat([conv.bias for conv in convs])
         if scale != 1.0:
             bias = bias * scale

@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from gscan_ros.model.fast_ops import GruRecurrence, SegmentMatmul
+from gscan_ros.model.fast_ops import ContiguousGrad, GruRecurrence, SegmentMatmul
 from gscan_ros.model.layout import Bound, Layout, child_maps
 
 if TYPE_CHECKING:
@@ -228,7 +228,7 @@ def _projections(bank: "WordModuleBank", bound: Bound, feats: torch.Tensor, size
         units = blk.att_unit.clamp(min=0)
         (B, k), S = units.shape, blk.children.shape[2]
         # index_select: its backward is index_add_, not a serial accumulating index_put
-        w = bank.att_feat_w[:, :S].index_select(0, units.reshape(-1)).view(B, k, S, Fd, A)
+        w = ContiguousGrad.apply(bank.att_feat_w[:, :S].index_select(0, units.reshape(-1))).view(B, k, S, Fd, A)
         weights.append(w.permute(0, 3, 1, 2, 4).reshape(B, Fd, k * S * A))
     return SegmentMatmul.apply(feats, torch.cat(weights, 2), sizes)
 

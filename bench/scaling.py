@@ -31,7 +31,8 @@ def train_command(data: str, out: Path, threads: int, args: argparse.Namespace) 
             *(["--config", args.config] if args.config else []),
             "--set", f"threads={threads}", "--set", f"max_updates={args.updates}",
             "--set", f"batch_size={args.batch_size}", "--set", f"log_every={LOG_EVERY}",
-            "--set", "validate_every=1000000", "--set", "checkpoint_every=1000000", "--set", "max_dev_examples=8", "--set", "screen_seeds=0",
+            "--set", "validate_every=1000000", "--set", "checkpoint_every=1000000", "--set", "max_dev_examples=8",
+            "--set", "screen_seeds=0",
             *(arg for item in args.set for arg in ("--set", item))]
 
 

@@ -143,7 +143,7 @@ class SparseConv:
         row of the offset between them, and the backward is one bag sum (`RowGather`):
         no sparse product, permuted copy or concatenation of the 12 MB matrix."""
         canvas = self.canvas_weight(convs, scale)
-        if self._canvas_rows.device != canvas.device:
+        if self._gather_plan[0].device != canvas.device:  # (per_cell_bags may have moved the rows alone)
             self._canvas_rows = self._canvas_rows.to(canvas.device)
             self._gather_plan = tuple(t.to(canvas.device) for t in self._gather_plan)
         return RowGather.apply(canvas, self._canvas_rows, *self._gather_plan).view(self._canvas_rows.shape[0], -1)

@@ -45,9 +45,8 @@ class SparseConv:
         # kernel-canvas position that links them, one per (q, p) pair.
         offset = ((r[:, None] - r[None, :] + g - 1) * (2 * g - 1) + (c[:, None] - c[None, :] + g - 1)).reshape(-1)
         pairs = offset.numel()
-        # [(q, p), canvas position] 0/1: the Toeplitz matrix is this times the canvas, a
-        # sparse matmul in both directions (an indexing gather would backprop through a
-        # serial accumulating index_put, several times slower: docs/results.md).
+        # [(q, p), canvas position] 0/1: the Toeplitz matrix is this times the canvas
+        # (`toeplitz`, the plain form that `weight`'s gather is tested against).
         self._placement = torch.sparse_coo_tensor(torch.stack([torch.arange(pairs), offset]), torch.ones(pairs),
                                                   (pairs, (2 * g - 1) ** 2), check_invariants=True).coalesce()
         self._cache_key, self._cache = None, None

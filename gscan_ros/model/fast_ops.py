@@ -110,7 +110,7 @@ class ContiguousGrad(torch.autograd.Function):
     """Identity whose backward makes the gradient contiguous before it goes on. Put after
     a gather whose output is then permuted and sliced: `index_select`'s backward
     (`index_add_`) on that strided gradient took ~5.5 ms of an update against ~0.7 ms for a copy plus a
-    contiguous `index_add_` (docs/results.md, "Training throughput")."""
+    contiguous `index_add_` (docs/results.md, "Why these fast paths")."""
 
     @staticmethod
     def forward(ctx, x: torch.Tensor) -> torch.Tensor:

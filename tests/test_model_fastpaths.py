@@ -6,8 +6,16 @@ import torch
 import torch.nn.functional as F
 
 from gscan_ros.model.compositional import ModelConfig
-from gscan_ros.model.fast_ops import (BagSum, ContiguousGrad, GruRecurrence, ReluDrop, RowGather, SegmentMatmul,
-                                     gru_update, keep_mask)
+from gscan_ros.model.fast_ops import (
+    BagSum,
+    ContiguousGrad,
+    GruRecurrence,
+    ReluDrop,
+    RowGather,
+    SegmentMatmul,
+    gru_update,
+    keep_mask,
+)
 from gscan_ros.model.layout import SlotGroups
 from gscan_ros.model.sparse_encoder import shared_bits, sparse_states
 

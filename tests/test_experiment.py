@@ -13,7 +13,7 @@ import yaml
 
 from gscan_ros.cli import main
 from gscan_ros.cli.args import available_cpus
-from gscan_ros.training.experiment import load_plan, resolve_config
+from gscan_ros.training.experiment import RunState, load_plan, resolve_config, work_order
 from gscan_ros.training.paper_figures import TABLE1, TABLE2
 
 REPO = Path(__file__).resolve().parents[1]
@@ -160,6 +160,16 @@ def test_bad_plan_is_one_line_naming_the_key(tmp_path, capsys, edit, names):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and names in err[0] and err[0].startswith("gscan-ros experiment: error: plan")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["plan.yaml"]
+
+
+def test_work_order_finishes_trained_runs_before_training_others(tmp_path):
+    specs = load_plan(write_plan(tmp_path / "plan.yaml", tmp_path, runs=[
+        {"name": f"r{i}", "config": str(REPO / "configs/semantic.yaml"), "data": "tiny", "seeds": [0],
+         "splits": SPLITS} for i in range(5)])).runs
+    statuses = ["new", "resume", "done", "evaluate", "resume"]
+    order = work_order([RunState(spec, status, 0, 2) for spec, status in zip(specs, statuses)])
+    assert [(st.spec.name, st.status) for st in order] == [
+        ("r2_s0", "done"), ("r3_s0", "evaluate"), ("r1_s0", "resume"), ("r4_s0", "resume"), ("r0_s0", "new")]
 
 
 def test_only_selects_entries_or_runs_and_names_unknown_ones():

@@ -13,7 +13,8 @@ overrides is merged into every run, so the shared recipe and budget are one edit
 3. `model.pt` is evaluated closed loop on the run's test splits (`evaluate`) and
    `<run>/results.json` gets the splits plus the run's metadata.
 
-Each step is a `gscan-ros` subprocess, so a killed runner loses at most the updates since
+Runs that only need evaluating go first, then half-trained ones, then new ones
+(`work_order`). Each step is a `gscan-ros` subprocess, so a killed runner loses at most the updates since
 the last checkpoint. All state comes from the files: a run's `.lock` (host, runner PID,
 child PID) keeps two runners from training it at once and is stale once both processes
 are gone; a run whose config.yaml no longer matches the plan is "stale" and left alone
@@ -514,6 +515,14 @@ def _evaluated(run_dir: Path, spec: RunSpec, end: dict) -> bool:
             and ev.get("max_examples") == spec.eval_max_examples)
 
 
+def work_order(states: list[RunState]) -> list[RunState]:
+    """Cheapest finish first: runs that only need evaluating, then half-trained ones, then
+    new ones (plan order within each), so a stop costs the least unfinished work and a
+    trained run's results never wait behind a whole training."""
+    rank = {"evaluate": 0, "resume": 1, "stale": 1, "new": 2}
+    return sorted(states, key=lambda st: rank.get(st.status, 0))
+
+
 def dataset_state(recipe: DataRecipe, data_root: Path) -> str:
     directory = recipe.directory(data_root)
     if recipe.path is not None:
@@ -596,7 +605,7 @@ class Runner:
             self.echo(line)
         outcome = Outcome(done=[st.spec.name for st in states if st.status == "done"])
         todo = []
-        for st in states:
+        for st in work_order(states):
             if st.status == "running" or (st.status == "stale" and not self.restart_stale):
                 outcome.skipped.append(st.spec.name)
             elif st.status != "done":

@@ -50,9 +50,11 @@ lint: setup
 demo: setup
 	$(VENV)/bin/gscan-ros demo
 
-# Each quick bench once; bench/kshot.py (hours: trains four models) runs only when asked.
+# Each quick bench once. Only when asked: bench/kshot.py (hours: trains four models) and
+# bench/compare_checkpoints.py (compares trained checkpoints it is given).
 bench: setup
-	for b in bench/[a-z]*.py; do [ "$$b" = bench/kshot.py ] && continue; echo "== $$b"; $(PY) $$b; done
+	for b in bench/[a-z]*.py; do case $$b in bench/kshot.py|bench/compare_checkpoints.py) continue;; esac; \
+		echo "== $$b"; $(PY) $$b; done
 
 clean:
 	rm -rf $(VENV) .ros_log build install log *.egg-info

@@ -73,9 +73,9 @@ def test_localization_and_size_correlation_on_a_hand_built_case():
     ordering = np.zeros((6, 6))
     ordering[0, :3] = [-0.3, 0.1, 0.05]  # ranks 1, 3, 2 against sizes 1, 2, 4: rho = 1 - 6*2/(3*8) = 0.5
     ordering[3, 3] = 9.0  # the square is not a circle: ignored
-    readings = [
-        Reading("test", "walk to a small circle", small_target, peak_at(0, 0), ordering),
-        Reading("test", "walk to a circle", big_target, peak_at(0, 1), None),
+    readings = [  # the nouns' maps: one on a circle, one on the square (the wrong shape), one missing
+        Reading("test", "walk to a small circle", small_target, peak_at(0, 0), ordering, peak_at(0, 2)),
+        Reading("test", "walk to a circle", big_target, peak_at(0, 1), None, peak_at(3, 3)),
         Reading("visual", "walk to a big circle", big_target, peak_at(0, 2), np.zeros((6, 6))),
     ]
     assert peak_distance(peak_at(0, 0), objects[0]) == 0 and peak_distance(peak_at(0, 1), objects[2]) != 0
@@ -84,11 +84,12 @@ def test_localization_and_size_correlation_on_a_hand_built_case():
     s = summarize(readings)
     assert list(s) == ["test", "visual", "all"]
     assert s["test"] == {"episodes": 2, "localization": 50.0, "localization_chance": 25.0, "beside": 50.0,
-                         "on_agent": 0.0, "size_episodes": 1, "size_spearman": pytest.approx(0.5)}
+                         "on_agent": 0.0, "noun_on_shape": 50.0, "size_episodes": 1,
+                         "size_spearman": pytest.approx(0.5)}
     on_agent = summarize([Reading("test", "walk to a circle", big_target, peak_at(5, 5), None)])["test"]
     assert on_agent["on_agent"] == 100.0 and on_agent["localization"] == 0.0  # the agent stands at (5, 5)
     assert s["visual"]["localization"] == 100.0 and s["visual"]["size_episodes"] == 0
-    assert math.isnan(s["visual"]["size_spearman"])
+    assert math.isnan(s["visual"]["size_spearman"]) and math.isnan(s["visual"]["noun_on_shape"])
     assert s["all"]["localization"] == pytest.approx(200 / 3) and s["all"]["size_spearman"] == pytest.approx(0.5)
 
 

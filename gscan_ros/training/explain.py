@@ -7,8 +7,10 @@
   publishes it live with this same function.
 - `referent_word`: the node whose map the noun phrase passes up to the verb.
 - `step0_readings` + `summarize`: per split, how often that map's argmax is the target's
-  cell (localization) or 1-2 cells from it (beside), and the Spearman correlation between
-  the size-ordering value at each object of the referred shape and its true size.
+  cell (localization) or 1-2 cells from it (beside), how often the noun's own map peaks
+  on an object of the noun's shape (where a failed localization goes wrong: the noun, or
+  the words composed on top of it), and the Spearman correlation between the
+  size-ordering value at each object of the referred shape and its true size.
 - `snapshots`: a run's `step_*.pt` files in update order (Fig. 4, metrics along training).
 """
 from __future__ import annotations
@@ -197,6 +199,7 @@ class Reading:
     situation: Situation
     referent: np.ndarray | None  # the map the noun phrase passes up
     ordering: np.ndarray | None  # the size-ordering map (commands with a size word)
+    noun: np.ndarray | None = None  # the noun's own map
 
 
 @torch.no_grad()
@@ -214,23 +217,30 @@ def step0_readings(policy: Policy, episodes: Sequence[Episode], batch_size: int 
             attention, antonyms = rollout.word_maps(maps, row)
             word = referent_word(graph)
             readings.append(Reading(ep.split, ep.command, ep.situation, attention.get(word),
-                                    size_ordering(attention, antonyms)))
+                                    size_ordering(attention, antonyms),
+                                    attention.get(CommandFrame.parse(ep.command).shape)))
     return readings
 
 
 def summarize(readings: Iterable[Reading]) -> dict[str, dict]:
     """Per split, then "all": episodes; localization % (of episodes with a target and a
     referent map); the same by chance for a uniform pick among the objects; beside % and
-    on-agent % (the map peaks 1-2 cells from the target, or on the agent's cell); episodes
-    with a defined size correlation and their mean Spearman (nan if none)."""
+    on-agent % (the map peaks 1-2 cells from the target, or on the agent's cell); noun on
+    shape % (of episodes with a noun map: it peaks on an object of the noun's shape);
+    episodes with a defined size correlation and their mean Spearman (nan if none)."""
     groups: dict[str, list[Reading]] = defaultdict(list)
     for r in readings:
         groups[r.split].append(r)
         groups["all"].append(r)
     out = {}
     for split in sorted(groups, key=lambda s: (s == "all", SPLIT_LETTERS.get(s, "~"), s)):
-        hits, beside, on_agent, chance, rhos = [], [], [], [], []
+        hits, beside, on_agent, chance, rhos, noun_hits = [], [], [], [], [], []
         for r in groups[split]:
+            if r.noun is not None:
+                shape = CommandFrame.parse(r.command).shape
+                peak = peak_cell(r.noun)
+                noun_hits.append(any(o.shape == shape and tuple(o.position) == peak
+                                     for o in r.situation.placed_objects))
             target = r.situation.target_object
             if target is not None and r.referent is not None:
                 peak = peak_cell(r.referent)
@@ -249,6 +259,7 @@ def summarize(readings: Iterable[Reading]) -> dict[str, dict]:
             "localization_chance": 100.0 * float(np.mean(chance)) if chance else float("nan"),
             "beside": 100.0 * float(np.mean(beside)) if beside else float("nan"),
             "on_agent": 100.0 * float(np.mean(on_agent)) if on_agent else float("nan"),
+            "noun_on_shape": 100.0 * float(np.mean(noun_hits)) if noun_hits else float("nan"),
             "size_episodes": len(rhos),
             "size_spearman": float(np.mean(rhos)) if rhos else float("nan"),
         }
@@ -257,12 +268,14 @@ def summarize(readings: Iterable[Reading]) -> dict[str, dict]:
 
 def metrics_table(summary: Mapping[str, Mapping]) -> str:
     """`summarize`'s result as a markdown table."""
-    lines = ["| split | episodes | localization % | chance % | beside % | on agent % | size episodes | size Spearman |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = ["| split | episodes | localization % | chance % | beside % | on agent % | noun on its shape % "
+             "| size episodes | size Spearman |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for split, m in summary.items():
         name = f"{SPLIT_LETTERS[split]} {split}" if split in SPLIT_LETTERS else split
         lines.append(f"| {name} | {m['episodes']} | {m['localization']:.1f} | {m['localization_chance']:.1f} "
-                     f"| {m['beside']:.1f} | {m['on_agent']:.1f} | {m['size_episodes']} | {m['size_spearman']:.3f} |")
+                     f"| {m['beside']:.1f} | {m['on_agent']:.1f} | {m['noun_on_shape']:.1f} | {m['size_episodes']} "
+                     f"| {m['size_spearman']:.3f} |")
     return "\n".join(lines) + "\n"
 
 
@@ -301,13 +314,14 @@ def progression_metrics(paths: Sequence[tuple[int, Path]], episodes: Sequence[Ep
 
 
 def progression_table(rows: Sequence[Mapping]) -> str:
-    lines = ["| update | dev exact match % | localization % | beside % | on agent % | size Spearman |",
-             "|---:|---:|---:|---:|---:|---:|"]
+    lines = ["| update | dev exact match % | localization % | beside % | on agent % | noun on its shape % "
+             "| size Spearman |",
+             "|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         em = r["dev_exact_match"]
         em_text = "-" if em is None else f"{em:.1f}"
         if em is not None and r["validated_at"] not in (None, r["update"]):
             em_text += f" (at {r['validated_at']})"
         lines.append(f"| {r['update']} | {em_text} | {r['localization']:.1f} | {r['beside']:.1f} "
-                     f"| {r['on_agent']:.1f} | {r['size_spearman']:.3f} |")
+                     f"| {r['on_agent']:.1f} | {r['noun_on_shape']:.1f} | {r['size_spearman']:.3f} |")
     return "\n".join(lines) + "\n"

@@ -30,9 +30,6 @@ class Qos:
         """TRANSIENT_LOCAL: a late subscriber still gets the stored samples."""
         return self.durability == TRANSIENT_LOCAL
 
-    def with_depth(self, depth: int) -> "Qos":
-        return Qos(depth, self.reliability, self.durability)
-
 
 # What writers offer.
 LATCHED = Qos(1, durability=TRANSIENT_LOCAL)  # world-state-like topics (docs/ros.md)

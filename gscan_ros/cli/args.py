@@ -74,13 +74,6 @@ def add_device_argument(parser: argparse.ArgumentParser) -> None:
                         help="where the network runs: cpu (default), cuda, or auto (cuda if torch sees a GPU)")
 
 
-def positive_float(text: str) -> float:
-    value = _parse(float, text)
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"must be a positive number, got {text!r}")
-    return value
-
-
 def worker_count(text: str) -> int:
     """A number of worker processes: at least 1, at most the CPUs available."""
     value = positive_int(text)

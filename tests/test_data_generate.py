@@ -168,16 +168,23 @@ def test_cli_render_png_and_gif(compositional, tmp_path):
                  "--out", str(tmp_path / "b.png")]) == 1
 
 
-def test_mcap_format_holds_the_same_episodes(tmp_path):
-    config = GenerationConfig(seed=5, max_examples=60)
+@pytest.mark.parametrize("workers", [1, 2])
+def test_mcap_format_holds_the_same_episodes(tmp_path, workers):
+    """Every split's bag holds the text format's episodes, in order, whether the bags are
+    written one after another or in parallel worker processes."""
+    config = GenerationConfig(seed=5, max_examples=60, percentage_dev=0.2)
     txt = generate_dataset(tmp_path / "txt", config)
-    generate_dataset(tmp_path / "bags", config, fmt="mcap")
+    report = generate_dataset(tmp_path / "bags", config, fmt="mcap", workers=workers)
     from gscan_ros.data.io import iter_episodes
 
-    expected = [e for e in iter_episodes(txt.path) if e.split == "train"]
-    got = list(iter_episodes(tmp_path / "bags" / "train"))
-    assert [(e.command, e.situation, e.actions) for e in got] == \
-        [(e.command, e.situation, e.actions) for e in expected]
+    episodes = list(iter_episodes(txt.path))
+    splits = [s for s, n in report.split_sizes.items() if n]
+    assert len(splits) >= 3
+    for split in splits:
+        expected = [e for e in episodes if e.split == split]
+        got = list(iter_episodes(tmp_path / "bags" / split))
+        assert [(e.command, e.situation, e.actions) for e in got] == \
+            [(e.command, e.situation, e.actions) for e in expected], split
 
 
 def _generate(out, *extra) -> int:

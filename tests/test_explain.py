@@ -18,6 +18,8 @@ from gscan_ros.language import get_parser  # noqa: E402
 from gscan_ros.model.policy import Policy  # noqa: E402
 from gscan_ros.training.explain import (  # noqa: E402
     Reading,
+    noun_colours,
+    noun_colours_table,
     peak_distance,
     referent_word,
     size_correlation,
@@ -26,6 +28,7 @@ from gscan_ros.training.explain import (  # noqa: E402
     step0_readings,
     summarize,
     trace,
+    weakest_colour,
     with_referent,
 )
 from gscan_ros.training.figures import DPI, TREE_LEVEL_IN, panel_titles, step_figure  # noqa: E402
@@ -91,6 +94,30 @@ def test_localization_and_size_correlation_on_a_hand_built_case():
     assert s["visual"]["localization"] == 100.0 and s["visual"]["size_episodes"] == 0
     assert math.isnan(s["visual"]["size_spearman"]) and math.isnan(s["visual"]["noun_on_shape"])
     assert s["all"]["localization"] == pytest.approx(200 / 3) and s["all"]["size_spearman"] == pytest.approx(0.5)
+
+
+def test_noun_colours_rank_each_colour_against_the_best_object_of_the_shape():
+    """Two scenes worked out by hand: the red circle gets 0.2 and 0.5 of the best circle's
+    value, the blue one is the best in both; a scene with one circle counts for nothing."""
+    red, blue, green = circle(1, 0, 0, "red"), circle(2, 0, 1, "blue"), circle(3, 0, 2, "green")
+    noun = np.zeros((6, 6))
+    noun[0, :3] = [0.1, 0.5, 0.25]
+    noun2 = np.zeros((6, 6))
+    noun2[0, :2] = [0.2, 0.4]
+    lone = situation([red, WorldObject("square", "red", 2, Position(3, 3))], red)
+    readings = [
+        Reading("test", "walk to a circle", situation([red, blue, green], blue), None, None, noun),
+        Reading("visual", "walk to a blue circle", situation([red, blue], blue), None, None, noun2),
+        Reading("test", "walk to a circle", lone, None, None, noun),
+        Reading("test", "walk to a circle", situation([red, blue], blue), None, None, None),  # no noun map
+    ]
+    found = noun_colours(readings)
+    assert list(found) == ["circle"]
+    assert found["circle"]["red"] == (2, pytest.approx((0.2 + 0.5) / 2))
+    assert found["circle"]["blue"] == (2, pytest.approx(1.0))
+    assert found["circle"]["green"] == (1, pytest.approx(0.5))
+    assert noun_colours_table(found).splitlines()[2] == "| circle | 1.00 (2) | 0.50 (1) | 0.35 (2) |"
+    assert weakest_colour(found) == ("circle", "red", pytest.approx(0.35)) and weakest_colour({}) is None
 
 
 @pytest.mark.parametrize("parser, command, word", [

@@ -68,13 +68,19 @@ def test_explain_progression_writes_fig4(dataset, run, tmp_path, capsys):
 def test_metrics_for_a_model_and_along_snapshots(dataset, run, capsys):
     assert main(["explain", "--metrics", "--data", str(dataset), "--splits", "test", "visual",
                  "--max-examples", "5", "--threads", "1"]) == 0
-    lines = capsys.readouterr().out.splitlines()
-    assert [line.split("|")[1].strip() for line in lines if line.startswith("| ") and "split" not in line] == \
+    out = capsys.readouterr().out
+    metrics, colours = out.split("\n\n")
+    assert [line.split("|")[1].strip() for line in metrics.splitlines()[2:] if line.startswith("| ")] == \
         ["A test", "C visual", "all"]
+    assert colours.splitlines()[1].startswith("| noun | ")
     assert main(["explain", "--metrics", "--progression", str(run), "--data", str(dataset), "--splits", "test",
                  "--threads", "1"]) == 0
-    rows = [line for line in capsys.readouterr().out.splitlines() if line.startswith("| ") and "update" not in line]
+    lines = capsys.readouterr().out.splitlines()
+    rows = [line for line in lines if line.startswith("| ") and "update" not in line]
     assert [r.split("|")[1].strip() for r in rows] == ["2", "4"]
+    header = next(line for line in lines if line.startswith("| update"))
+    assert header.rstrip(" |").endswith("noun's weakest colour")
+    assert all(r.count("|") == header.count("|") for r in rows)
 
 
 def test_evenly_keeps_first_and_last():

@@ -209,6 +209,8 @@ def _metrics(args: argparse.Namespace) -> int:
     from gscan_ros.training.explain import (
         evenly,
         metrics_table,
+        noun_colours,
+        noun_colours_table,
         progression_metrics,
         progression_table,
         snapshots,
@@ -224,7 +226,10 @@ def _metrics(args: argparse.Namespace) -> int:
         print(progression_table(rows), end="")
         return 0
     policy = Policy.from_checkpoint(args.checkpoint, device=args.device)
-    summary = summarize(step0_readings(policy, episodes, args.batch_size))
+    readings = step0_readings(policy, episodes, args.batch_size)
     print(f"{_model_name(args, policy)} on {args.data} (step 0):")
-    print(metrics_table(summary), end="")
+    print(metrics_table(summarize(readings)), end="")
+    print("\nThe noun's map at each object of its shape, by colour, relative to the scene's highest such value "
+          "(mean over objects, in scenes with two or more; all splits above):")
+    print(noun_colours_table(noun_colours(readings)), end="")
     return 0

@@ -11,6 +11,8 @@
   on an object of the noun's shape (where a failed localization goes wrong: the noun, or
   the words composed on top of it), and the Spearman correlation between the
   size-ordering value at each object of the referred shape and its true size.
+- `noun_colours`: how the noun's map ranks the colours of its shape (split C's red square,
+  never a training target, is the combination it learns to rank low).
 - `snapshots`: a run's `step_*.pt` files in update order (Fig. 4, metrics along training).
 """
 from __future__ import annotations
@@ -266,6 +268,47 @@ def summarize(readings: Iterable[Reading]) -> dict[str, dict]:
     return out
 
 
+def noun_colours(readings: Iterable[Reading]) -> dict[str, dict[str, tuple[int, float]]]:
+    """Does the noun's map favour some colours of its shape? Per noun (shape) and colour:
+    (objects, mean of the map's value at such an object divided by the highest value at
+    any object of the shape in the same scene). Only scenes with two or more objects of the
+    noun's shape count; 1.0 means the colour is never ranked below another of its shape.
+    A combination that is never a training target (split C's red square) is the one to
+    watch: fitting train only ever rewards a map that ranks it low."""
+    values: dict[str, dict[str, list[float]]] = defaultdict(lambda: defaultdict(list))
+    for r in readings:
+        if r.noun is None:
+            continue
+        shape = CommandFrame.parse(r.command).shape
+        same = [o for o in r.situation.placed_objects if o.shape == shape]
+        if len(same) < 2:
+            continue
+        at = [float(r.noun[o.position.row, o.position.col]) for o in same]
+        top = max(at)
+        if top <= 0:
+            continue
+        for o, v in zip(same, at):
+            values[shape][o.color].append(v / top)
+    return {shape: {c: (len(v), float(np.mean(v))) for c, v in sorted(by_colour.items())}
+            for shape, by_colour in sorted(values.items())}
+
+
+def weakest_colour(found: Mapping[str, Mapping[str, tuple[int, float]]]) -> tuple[str, str, float] | None:
+    """(noun, colour, mean relative value) of the colour a noun's map ranks lowest, or None."""
+    entries = [(shape, colour, value) for shape, by_colour in found.items() for colour, (_, value) in by_colour.items()]
+    return min(entries, key=lambda e: e[2]) if entries else None
+
+
+def noun_colours_table(found: Mapping[str, Mapping[str, tuple[int, float]]]) -> str:
+    """`noun_colours` as a markdown table: a row per noun, a column per colour."""
+    colours = sorted({c for by_colour in found.values() for c in by_colour})
+    lines = ["| noun | " + " | ".join(colours) + " |", "|---|" + "---:|" * len(colours)]
+    for shape, by_colour in found.items():
+        cells = [f"{by_colour[c][1]:.2f} ({by_colour[c][0]})" if c in by_colour else "–" for c in colours]
+        lines.append(f"| {shape} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def metrics_table(summary: Mapping[str, Mapping]) -> str:
     """`summarize`'s result as a markdown table."""
     lines = ["| split | episodes | localization % | chance % | beside % | on agent % | noun on its shape % "
@@ -307,21 +350,27 @@ def progression_metrics(paths: Sequence[tuple[int, Path]], episodes: Sequence[Ep
     for step, path in paths:
         policy = Policy.from_checkpoint(path, device=device)
         metrics = policy.metadata.get("metrics") or {}
-        summary = summarize(step0_readings(policy, episodes, batch_size))["all"]
+        readings = step0_readings(policy, episodes, batch_size)
         rows.append({"update": step, "dev_exact_match": metrics.get("dev_exact_match"),
-                     "validated_at": metrics.get("step"), **summary})
+                     "validated_at": metrics.get("step"), **summarize(readings)["all"],
+                     "weakest_colour": weakest_colour(noun_colours(readings))})
     return rows
+
+
+def _weakest_text(weakest: tuple[str, str, float] | None) -> str:
+    return "-" if weakest is None else f"{weakest[1]} {weakest[0]} {weakest[2]:.2f}"
 
 
 def progression_table(rows: Sequence[Mapping]) -> str:
     lines = ["| update | dev exact match % | localization % | beside % | on agent % | noun on its shape % "
-             "| size Spearman |",
-             "|---:|---:|---:|---:|---:|---:|---:|"]
+             "| size Spearman | noun's weakest colour |",
+             "|---:|---:|---:|---:|---:|---:|---:|---|"]
     for r in rows:
         em = r["dev_exact_match"]
         em_text = "-" if em is None else f"{em:.1f}"
         if em is not None and r["validated_at"] not in (None, r["update"]):
             em_text += f" (at {r['validated_at']})"
         lines.append(f"| {r['update']} | {em_text} | {r['localization']:.1f} | {r['beside']:.1f} "
-                     f"| {r['on_agent']:.1f} | {r['noun_on_shape']:.1f} | {r['size_spearman']:.3f} |")
+                     f"| {r['on_agent']:.1f} | {r['noun_on_shape']:.1f} | {r['size_spearman']:.3f} "
+                     f"| {_weakest_text(r.get('weakest_colour'))} |")
     return "\n".join(lines) + "\n"

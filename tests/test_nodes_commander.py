@@ -3,7 +3,8 @@ import pytest
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from gscan_ros.nodes.commander import GscanCommander, Outcome
+from gscan_ros.language import get_parser
+from gscan_ros.nodes.commander import GscanCommander, Outcome, _EpisodeWatch
 from gscan_ros.nodes.common import EVENT_QOS
 from gscan_ros.world.types import Action
 
@@ -35,6 +36,17 @@ def test_an_episode_that_the_policy_ends_succeeds(probe, commander, checkpoint):
     assert len(result.action_times_ns) == 3 and all(t >= result.sent_ns for t in result.action_times_ns)
     assert any(line.startswith("policy_node: done with") for line in result.status)
     assert 0 < result.elapsed < TIMEOUT
+
+
+def test_an_episode_waits_for_its_graph_when_the_eos_comes_first():
+    """Topics are not ordered with each other: on a busy machine the <eos> action can
+    arrive before the command graph, and the episode is closed only once both are in."""
+    watch = _EpisodeWatch("walk to a large circle")
+    lines = ["policy_node: following 'walk to a big circle'", "policy_node: done with 'walk to a big circle'"]
+    assert watch.update(None, lines, [(1, 2, EOS)]) == (Outcome.SUCCEEDED, "") and watch.eos_seen
+    assert not watch.closed(lines)
+    watch.see(get_parser("semantic").parse("walk to a large circle"))
+    assert watch.closed(lines) and not watch.closed(lines[:1])
 
 
 def test_a_paraphrase_is_followed_as_its_gscan_command(probe, commander, checkpoint):

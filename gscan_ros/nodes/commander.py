@@ -50,7 +50,7 @@ from gscan_ros.world.types import Action
 from msg_adapters import msg_to_action, msg_to_graph
 
 READY_TIMEOUT_S = 60.0
-EOS_GRACE_S = 2.0  # after <eos>, how long to wait for the policy's closing status line
+EOS_GRACE_S = 5.0  # after <eos>, how long to wait for the command graph and the policy's closing status line
 POLL_S = 0.02
 # Who listens where, by default node name (docs/ros.md): what `wait_until_ready` waits for.
 STACK_SUBSCRIBERS = {
@@ -255,8 +255,13 @@ class GscanCommander(Node):
             self._executor.spin_once(timeout_sec=POLL_S)
         outcome, reason = decided
         if watch.eos_seen:  # the policy's closing line says whether max_steps forced the <eos>
+            # The graph may still be on its way too: topics are not ordered with each other,
+            # so a busy machine can deliver the <eos> action before the command graph.
             grace = min(deadline, time.monotonic() + EOS_GRACE_S)
-            while not watch.closed(self.status_log[status_from:]) and time.monotonic() < grace:
+            while time.monotonic() < grace:
+                watch.see(self._graph(sent_ns))
+                if watch.closed(self.status_log[status_from:]):
+                    break
                 self._executor.spin_once(timeout_sec=POLL_S)
             outcome = Outcome.MAX_STEPS if watch.forced(self.status_log[status_from:]) else Outcome.SUCCEEDED
         actions = self._episode_actions(sent_ns)
@@ -323,8 +328,7 @@ class _EpisodeWatch:
 
     def update(self, graph: CommandGraph | None, lines: list[str], actions: list) -> tuple[Outcome, str] | None:
         """The outcome once it is known (a provisional SUCCEEDED at <eos>), else None."""
-        if graph is not None:
-            self._canonical = repr(graph.command)
+        self.see(graph)
         following = False  # the policy started this episode (lines before it are about an older one)
         for line in lines:
             if line.startswith(self._rejected):
@@ -345,9 +349,14 @@ class _EpisodeWatch:
             return Outcome.SUCCEEDED, ""
         return None
 
+    def see(self, graph: CommandGraph | None) -> None:
+        """Note the parser's graph of the command (its canonical text names the episode)."""
+        if graph is not None:
+            self._canonical = repr(graph.command)
+
     def closed(self, lines: list[str]) -> bool:
-        """The policy's `done with '<command>'` line has arrived."""
-        return self._canonical is None or any(
+        """The parser's graph and the policy's `done with '<command>'` line have both arrived."""
+        return self._canonical is not None and any(
             line.startswith(f"policy_node: done with {self._canonical}") for line in lines)
 
     def forced(self, lines: list[str]) -> bool:

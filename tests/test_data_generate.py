@@ -187,6 +187,17 @@ def test_mcap_format_holds_the_same_episodes(tmp_path, workers):
             [(e.command, e.situation, e.actions) for e in expected], split
 
 
+def test_mcap_bags_written_in_parallel_are_byte_identical(tmp_path):
+    config = GenerationConfig(seed=5, max_examples=60, percentage_dev=0.2)
+    report = generate_dataset(tmp_path / "one", config, fmt="mcap", workers=1)
+    generate_dataset(tmp_path / "two", config, fmt="mcap", workers=2)
+    files = sorted(p.relative_to(tmp_path / "one") for p in (tmp_path / "one").rglob("*") if p.is_file())
+    assert len([f for f in files if f.suffix == ".mcap"]) == sum(1 for n in report.split_sizes.values() if n)
+    assert files == sorted(p.relative_to(tmp_path / "two") for p in (tmp_path / "two").rglob("*") if p.is_file())
+    for f in files:
+        assert (tmp_path / "one" / f).read_bytes() == (tmp_path / "two" / f).read_bytes(), f
+
+
 def _generate(out, *extra) -> int:
     return main(["generate", "--out", str(out), "--examples", "60", "--seed", "5", "--workers", "1", "--quiet",
                  *extra])

@@ -20,6 +20,7 @@ from __future__ import annotations
 import re
 from collections import defaultdict
 from dataclasses import dataclass, replace
+from functools import cached_property
 from pathlib import Path
 from typing import Iterable, Mapping, Sequence
 
@@ -203,6 +204,11 @@ class Reading:
     ordering: np.ndarray | None  # the size-ordering map (commands with a size word)
     noun: np.ndarray | None = None  # the noun's own map
 
+    @cached_property
+    def shape(self) -> str:
+        """The shape the command's noun names."""
+        return CommandFrame.parse(self.command).shape
+
 
 @torch.no_grad()
 def step0_readings(policy: Policy, episodes: Sequence[Episode], batch_size: int = 512) -> list[Reading]:
@@ -218,9 +224,10 @@ def step0_readings(policy: Policy, episodes: Sequence[Episode], batch_size: int 
         for row, (ep, graph) in enumerate(zip(chunk, graphs)):
             attention, antonyms = rollout.word_maps(maps, row)
             word = referent_word(graph)
-            readings.append(Reading(ep.split, ep.command, ep.situation, attention.get(word),
-                                    size_ordering(attention, antonyms),
-                                    attention.get(CommandFrame.parse(ep.command).shape)))
+            reading = Reading(ep.split, ep.command, ep.situation, attention.get(word),
+                              size_ordering(attention, antonyms))
+            reading.noun = attention.get(reading.shape)
+            readings.append(reading)
     return readings
 
 
@@ -239,9 +246,8 @@ def summarize(readings: Iterable[Reading]) -> dict[str, dict]:
         hits, beside, on_agent, chance, rhos, noun_hits = [], [], [], [], [], []
         for r in groups[split]:
             if r.noun is not None:
-                shape = CommandFrame.parse(r.command).shape
                 peak = peak_cell(r.noun)
-                noun_hits.append(any(o.shape == shape and tuple(o.position) == peak
+                noun_hits.append(any(o.shape == r.shape and tuple(o.position) == peak
                                      for o in r.situation.placed_objects))
             target = r.situation.target_object
             if target is not None and r.referent is not None:
@@ -252,7 +258,7 @@ def summarize(readings: Iterable[Reading]) -> dict[str, dict]:
                 on_agent.append(peak == tuple(r.situation.agent_position))
                 chance.append(1.0 / len(r.situation.placed_objects))
             if r.ordering is not None:
-                rho = size_correlation(r.ordering, r.situation, CommandFrame.parse(r.command).shape)
+                rho = size_correlation(r.ordering, r.situation, r.shape)
                 if not np.isnan(rho):
                     rhos.append(rho)
         out[split] = {
@@ -279,7 +285,7 @@ def noun_colours(readings: Iterable[Reading]) -> dict[str, dict[str, tuple[int, 
     for r in readings:
         if r.noun is None:
             continue
-        shape = CommandFrame.parse(r.command).shape
+        shape = r.shape
         same = [o for o in r.situation.placed_objects if o.shape == shape]
         if len(same) < 2:
             continue

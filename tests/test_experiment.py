@@ -177,7 +177,10 @@ def test_only_selects_entries_or_runs_and_names_unknown_ones():
 
     plan = load_plan(REPO / "configs/experiments/paper.yaml")
     assert [r.name for r in plan.share(None, ("semantic_len15", "seq2seq_s0"))] == [
-        "seq2seq_s0", "semantic_len15_s0", "semantic_len15_s1", "semantic_len15_s2"]
+        "semantic_len15_s0", "semantic_len15_s1", "semantic_len15_s2", "seq2seq_s0"]
+    # in the order named, so a user decides what trains next; a run named twice keeps its first place
+    assert [r.name for r in plan.share(None, ("semantic_s2", "semantic", "state_s0", "semantic_s2"))] == [
+        "semantic_s2", "semantic_s0", "semantic_s1", "state_s0"]
     with pytest.raises(PlanError, match="'nope'"):
         plan.share(None, ("nope",))
 
@@ -187,13 +190,15 @@ def test_paper_plan_covers_every_column_with_one_recipe():
     seeds: dict[tuple, set] = {}
     for run in plan.runs:
         seeds.setdefault((run.column, run.entry), set()).add(run.seed)
-    assert len({resolve_config(plan, run).max_updates for run in plan.runs}) == 1  # one budget
+    budgets = {run.column: resolve_config(plan, run).max_updates for run in plan.runs}
+    assert len(set(budgets.values()) - {budgets.pop("seq2seq_160k")}) == 1  # one budget, and its named variant
     columns = {column for column, _ in seeds}
-    assert columns == {"seq2seq", "state", "attention+state", "constituency", "dependency", "semantic",
-                       "semantic_minmax", "semantic_add"}
+    assert columns == {"seq2seq", "seq2seq_160k", "state", "attention+state", "constituency", "dependency",
+                       "semantic", "semantic_minmax", "semantic_add"}
     assert all(len(s) == 3 for (column, _), s in seeds.items() if column == "semantic")
     assert {r.data.k_shot for r in plan.runs if r.data.split_kind == "compositional"} == {1, 5, 11, 51}
-    assert {r.entry for r in plan.runs[:15]} == {entry for _, entry in seeds}  # every column's first seed first
+    first_round = plan.runs[:len(seeds)]  # every column's first seed first
+    assert {r.entry for r in first_round} == {entry for _, entry in seeds}
     minmax = next(r for r in plan.runs if r.column == "semantic_minmax")
     assert resolve_config(plan, minmax).model["size_map"] == "minmax"
 

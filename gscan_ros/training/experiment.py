@@ -137,12 +137,19 @@ class Plan:
 
     def share(self, worker: tuple[int, int] | None, only: tuple[str, ...] = ()) -> list[RunSpec]:
         """Worker i of N takes the runs whose index % N == i (every run without a worker);
-        `only` keeps the runs named there (a `runs:` entry name or a run name like
-        'semantic_s1'), in plan order — PlanError for a name the plan does not have."""
+        `only` keeps the runs named there (a `runs:` entry name, for all its seeds in plan
+        order, or a run name like 'semantic_s1') in the order named, so a user sets what
+        trains next — PlanError for a name the plan does not have."""
         unknown = sorted(set(only) - {r.entry for r in self.runs} - {r.name for r in self.runs})
         if unknown:
             raise PlanError(f"{self.path}: no run or runs[] entry named {', '.join(map(repr, unknown))}")
-        runs = [r for r in self.runs if not only or r.entry in only or r.name in only]
+        if only:
+            named: dict[str, RunSpec] = {}
+            for name in only:  # a run named twice keeps its first place
+                named.update((r.name, r) for r in self.runs if name in (r.entry, r.name) and r.name not in named)
+            runs = list(named.values())
+        else:
+            runs = list(self.runs)
         if worker is None:
             return runs
         i, n = worker

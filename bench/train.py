@@ -3,6 +3,7 @@
     .venv/bin/python bench/train.py [--data DIR] [--config FILE] [--set KEY=VALUE ...] [--updates 10]
                                     [--warmup 2] [--threads 2] [--device cpu|cuda|auto]
     .venv/bin/python bench/train.py --data data_gen/len --config configs/length.yaml   # split I, 12x12
+    .venv/bin/python bench/train.py --checkpoint results/paper/constituency_s0/last.pt  # a trained model
 
 Without --data, a dataset of 6000 candidate examples is generated into a temp dir
 (seed 0; gSCAN-length episodes, ~14 actions on average). Each mode runs in its own
@@ -26,12 +27,14 @@ from _data import dataset_or_generated
 
 
 def measure(data: str, mode: str, updates: int, warmup: int, threads: int, batch_size: int,
-            config: str | None = None, device: str = "cpu", overrides: list[str] = ()) -> dict:
+            config: str | None = None, device: str = "cpu", overrides: list[str] = (),
+            checkpoint: str | None = None) -> dict:
     import numpy as np
     import torch
 
     from gscan_ros.language.lexicon import Lexicon
     from gscan_ros.language.registry import get_parser
+    from gscan_ros.model.checkpoint import checkpoint_lexicon, read_checkpoint, restore_model
     from gscan_ros.model.runtime import configure_torch, resolve_device
     from gscan_ros.training.batches import EpisodeStore, batch_order
     from gscan_ros.training.config import TrainConfig
@@ -43,13 +46,20 @@ def measure(data: str, mode: str, updates: int, warmup: int, threads: int, batch
     keep_freed_memory()
     torch.manual_seed(0)
     cfg = TrainConfig.load(config, overrides)
-    lexicon = Lexicon.named(cfg.lexicon)
-    parser = get_parser(cfg.parser, lexicon)  # the config's parse: constituency graphs have more, wider modules
+    ckpt = read_checkpoint(checkpoint) if checkpoint else None
+    lexicon = checkpoint_lexicon(ckpt) if ckpt else Lexicon.named(cfg.lexicon)
+    # the config's (or checkpoint's) parse: constituency graphs have more, wider modules
+    parser = get_parser(ckpt["parser"] if ckpt else cfg.parser, lexicon)
     t0 = time.time()
     store = EpisodeStore(iter_split(data, "train"), parser)
     cache_s = time.time() - t0
-    model = new_model(cfg, parser, lexicon, store).to(dev)
-    update = TrainStep(model, torch.optim.Adam(model.parameters(), lr=1e-3), store)
+    model = (restore_model(ckpt) if ckpt else new_model(cfg, parser, lexicon, store)).to(dev)
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)
+    if ckpt and "optimizer" in ckpt:  # a training checkpoint: Adam's moments as the run left them
+        optimizer.load_state_dict(ckpt["optimizer"])
+        for group in optimizer.param_groups:
+            group["lr"] = 1e-3
+    update = TrainStep(model, optimizer, store)
     order = batch_order(store, batch_size, mode, np.random.default_rng(0))
     order = sorted(order, key=len, reverse=True)  # full batches first (per_command: the original's 200-episode chunks)
     if len(order) < warmup + updates:
@@ -83,17 +93,24 @@ def main() -> None:
     ap.add_argument("--device", default="cpu", choices=DEVICES, help="where the network runs")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="config override, as `gscan-ros train --set` (e.g. model.message=state, parser=dependency)")
+    ap.add_argument("--checkpoint", help="time updates of this trained model (a run's last.pt also restores "
+                                         "Adam's moments) instead of a fresh one; its model and parse win over "
+                                         "--config's")
     ap.add_argument("--mode", choices=BATCHING, help="(internal) measure one mode in this process")
     args = ap.parse_args()
     if args.mode:
         print(json.dumps(measure(args.data, args.mode, args.updates, args.warmup, args.threads, args.batch_size,
-                                 args.config, args.device, args.set)))
+                                 args.config, args.device, args.set, args.checkpoint)))
         return
+    from gscan_ros.errors import CheckpointError
+    from gscan_ros.model.checkpoint import read_checkpoint
     from gscan_ros.training.config import ConfigError, TrainConfig
 
-    try:  # a bad config or override is one line here, not a traceback from each child
+    try:  # a bad config, override or checkpoint is one line here, not a traceback from each child
         TrainConfig.load(args.config, args.set)
-    except ConfigError as err:
+        if args.checkpoint:
+            read_checkpoint(args.checkpoint)
+    except (ConfigError, CheckpointError) as err:
         raise SystemExit(f"bench/train.py: {err}") from None
     with dataset_or_generated(args.data, examples=6000) as data:
         results = {}
@@ -101,6 +118,7 @@ def main() -> None:
             cmd = [sys.executable, __file__, "--data", data, "--mode", mode, "--updates", str(args.updates),
                    "--warmup", str(args.warmup), "--threads", str(args.threads), "--batch-size", str(args.batch_size),
                    "--device", args.device, *(["--config", args.config] if args.config else []),
+                   *(["--checkpoint", args.checkpoint] if args.checkpoint else []),
                    *(arg for item in args.set for arg in ("--set", item))]
             results[mode] = json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout)
     for mode, r in results.items():

@@ -272,6 +272,13 @@ def test_report_puts_mean_and_std_beside_the_paper(results, tmp_path):
     assert (tmp_path / "tables_curves.png").read_bytes().startswith(b"\x89PNG")
 
 
+def test_a_variant_column_is_measured_against_its_paper_columns_budget(tmp_path):
+    fake_run(tmp_path / "r", "seq2seq_160k_s0", "seq2seq_160k", 0, {"test": split("A", 93.0)}, paper="seq2seq")
+    out = tmp_path / "tables.md"
+    assert report([tmp_path / "r"], out) == 0
+    assert "| Seq2Seq_160K | 0 | 1000 | 1000 | 50k (40M: 1/800) |" in out.read_text()  # Ruis et al.'s 40M, not 30M
+
+
 def test_report_is_byte_identical_and_refuses_to_overwrite(results, tmp_path, capsys):
     first, second = tmp_path / "one.md", tmp_path / "two.md"
     assert report(results, first, "--no-curves") == 0 and report(results[::-1], second, "--no-curves") == 0

@@ -384,13 +384,14 @@ def _budget(t: Tables) -> list[str]:
         updates_text = str(updates[0]) if len(updates) == 1 else f"{updates[0]}–{updates[-1]}"
         trend_text = "–" if trend is None else f"{'rising' if trend >= RISING_POINTS else 'flat'} {trend:+.2f}"
         out.append(f"| {g.label} | {', '.join(str(r.seed) for r in runs)} | {updates_text} | "
-                   f"{'/'.join(str(b) for b in budgets)} | {_examples_text(g.column, runs)} | "
+                   f"{'/'.join(str(b) for b in budgets)} | {_examples_text(g.paper_column or g.column, runs)} | "
                    f"{Cell(best).text() if best else '–'} | {trend_text} |")
     return out + [""]
 
 
 def _examples_text(column: str, runs: list[RunResult]) -> str:
-    """Examples the runs trained on (mean over seeds) beside the paper's, e.g. '2.0M (30M: 1/15)'."""
+    """Examples the runs trained on (mean over seeds) beside those of the paper's `column`,
+    e.g. '2.0M (30M: 1/15)'."""
     paper = PAPER_EXAMPLES.get(column, PAPER_EXAMPLES_DEFAULT)
     seen = [r.updates * r.batch_size for r in runs if r.batch_size]
     if not seen:

@@ -185,6 +185,23 @@ def test_only_selects_entries_or_runs_and_names_unknown_ones():
         plan.share(None, ("nope",))
 
 
+def test_first_takes_the_runs_it_names_before_the_seed_rounds(tmp_path):
+    from gscan_ros.training.experiment import PlanError
+
+    entries = [{"name": name, "config": str(REPO / "configs/semantic.yaml"), "data": "tiny", "seeds": [0, 1, 2],
+                "splits": SPLITS} for name in ("a", "b")]
+    path = write_plan(tmp_path / "plan.yaml", tmp_path, runs=entries)
+    assert [r.name for r in load_plan(path).runs] == ["a_s0", "b_s0", "a_s1", "b_s1", "a_s2", "b_s2"]
+    doc = yaml.safe_load(path.read_text())
+    path.write_text(yaml.safe_dump({**doc, "first": ["a_s2", "b"]}))
+    runs = load_plan(path).runs
+    assert [r.name for r in runs] == ["a_s2", "b_s0", "b_s1", "b_s2", "a_s0", "a_s1"]
+    assert [r.index for r in runs] == list(range(6))  # worker shares follow the new order
+    path.write_text(yaml.safe_dump({**doc, "first": ["c_s0"]}))
+    with pytest.raises(PlanError, match="no run or runs\\[\\] entry named 'c_s0'"):
+        load_plan(path)
+
+
 def test_paper_plan_covers_every_column_with_one_recipe():
     plan = load_plan(REPO / "configs/experiments/paper.yaml")
     seeds: dict[tuple, set] = {}
@@ -197,7 +214,8 @@ def test_paper_plan_covers_every_column_with_one_recipe():
                        "semantic", "semantic_minmax", "semantic_add"}
     assert all(len(s) == 3 for (column, _), s in seeds.items() if column == "semantic")
     assert {r.data.k_shot for r in plan.runs if r.data.split_kind == "compositional"} == {1, 5, 11, 51}
-    first_round = plan.runs[:len(seeds)]  # every column's first seed first
+    assert plan.runs[0].name == "semantic_s2"  # `first:`: Semantic has three seeds from the start
+    first_round = plan.runs[1:len(seeds) + 1]  # then every column's first seed
     assert {r.entry for r in first_round} == {entry for _, entry in seeds}
     minmax = next(r for r in plan.runs if r.column == "semantic_minmax")
     assert resolve_config(plan, minmax).model["size_map"] == "minmax"

@@ -32,9 +32,9 @@ import subprocess
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Sequence
 
 import yaml
 
@@ -140,23 +140,14 @@ class Plan:
         `only` keeps the runs named there (a `runs:` entry name, for all its seeds in plan
         order, or a run name like 'semantic_s1') in the order named, so a user sets what
         trains next — PlanError for a name the plan does not have."""
-        unknown = sorted(set(only) - {r.entry for r in self.runs} - {r.name for r in self.runs})
-        if unknown:
-            raise PlanError(f"{self.path}: no run or runs[] entry named {', '.join(map(repr, unknown))}")
-        if only:
-            named: dict[str, RunSpec] = {}
-            for name in only:  # a run named twice keeps its first place
-                named.update((r.name, r) for r in self.runs if name in (r.entry, r.name) and r.name not in named)
-            runs = list(named.values())
-        else:
-            runs = list(self.runs)
+        runs = _named(self.runs, only, str(self.path)) if only else list(self.runs)
         if worker is None:
             return runs
         i, n = worker
         return [r for r in runs if r.index % n == i]
 
 
-_TOP_KEYS = ("results", "data_root", "defaults", "evaluation", "datasets", "runs")
+_TOP_KEYS = ("results", "data_root", "defaults", "evaluation", "datasets", "runs", "first")
 _DATASET_KEYS = {"split_kind": str, "examples": (int, str), "k_shot": int, "seed": int, "grid_size": int,
                  "num_resampling": int, "percentage_train": float, "percentage_dev": float,
                  "cut_off_target_length": int, "path": str}
@@ -225,6 +216,12 @@ def load_plan(path: str | Path, results: str | Path | None = None, data_root: st
         parsed.append((name, column, title, paper, config, datasets[data], seeds, tuple(overrides), tuple(splits),
                        eval_max))
     runs = _expand(parsed, where)
+    first = doc.get("first") or []
+    if not (isinstance(first, list) and all(isinstance(n, str) for n in first)):
+        raise PlanError(f"{where}: first must be a list of run or runs[] entry names, got {first!r}")
+    if first:
+        taken = _named(runs, first, where)
+        runs = [replace(r, index=i) for i, r in enumerate(taken + [r for r in runs if r not in taken])]
     results = results or _text(doc.get("results", "results"), where, "results")
     data_root = data_root or _text(doc.get("data_root", "data_gen/experiments"), where, "data_root")
     return Plan(path=path, results=Path(results), data_root=Path(data_root), eval_max_examples=max_examples,
@@ -248,6 +245,19 @@ def _expand(entries: list[tuple], where: str) -> list[RunSpec]:
                                 paper_column=paper, config=config, data=data, seed=seeds[position],
                                 overrides=overrides, splits=splits, eval_max_examples=eval_max))
     return runs
+
+
+def _named(runs: list[RunSpec], names: Sequence[str], where: str) -> list[RunSpec]:
+    """The runs `names` names (an entry name stands for all its seeds, in plan order),
+    in the order named; a run named twice keeps its first place. PlanError for a name
+    the plan does not have."""
+    unknown = sorted(set(names) - {r.entry for r in runs} - {r.name for r in runs})
+    if unknown:
+        raise PlanError(f"{where}: no run or runs[] entry named {', '.join(map(repr, unknown))}")
+    named: dict[str, RunSpec] = {}
+    for name in names:
+        named.update((r.name, r) for r in runs if name in (r.entry, r.name) and r.name not in named)
+    return list(named.values())
 
 
 def _dataset(name, spec, where: str) -> DataRecipe:

@@ -221,7 +221,8 @@ def load_plan(path: str | Path, results: str | Path | None = None, data_root: st
         raise PlanError(f"{where}: first must be a list of run or runs[] entry names, got {first!r}")
     if first:
         taken = _named(runs, first, where)
-        runs = [replace(r, index=i) for i, r in enumerate(taken + [r for r in runs if r not in taken])]
+        names = {r.name for r in taken}
+        runs = [replace(r, index=i) for i, r in enumerate(taken + [r for r in runs if r.name not in names])]
     results = results or _text(doc.get("results", "results"), where, "results")
     data_root = data_root or _text(doc.get("data_root", "data_gen/experiments"), where, "data_root")
     return Plan(path=path, results=Path(results), data_root=Path(data_root), eval_max_examples=max_examples,

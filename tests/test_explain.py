@@ -23,7 +23,10 @@ from gscan_ros.training.explain import (  # noqa: E402
     peak_distance,
     referent_word,
     size_correlation,
+    size_heads,
+    size_heads_table,
     size_ordering,
+    size_word_first,
     spearman,
     step0_readings,
     summarize,
@@ -86,6 +89,7 @@ def test_localization_and_size_correlation_on_a_hand_built_case():
     assert size_correlation(ordering, small_target, "circle") == pytest.approx(0.5)
     s = summarize(readings)
     assert list(s) == ["test", "visual", "all"]
+    assert math.isnan(s["test"].pop("size_word_first"))  # no size word's map given
     assert s["test"] == {"episodes": 2, "localization": 50.0, "localization_chance": 25.0, "beside": 50.0,
                          "on_agent": 0.0, "noun_on_shape": 50.0, "size_episodes": 1,
                          "size_spearman": pytest.approx(0.5)}
@@ -94,6 +98,36 @@ def test_localization_and_size_correlation_on_a_hand_built_case():
     assert s["visual"]["localization"] == 100.0 and s["visual"]["size_episodes"] == 0
     assert math.isnan(s["visual"]["size_spearman"]) and math.isnan(s["visual"]["noun_on_shape"])
     assert s["all"]["localization"] == pytest.approx(200 / 3) and s["all"]["size_spearman"] == pytest.approx(0.5)
+
+
+def test_size_word_first_compares_the_target_with_the_objects_the_command_names():
+    """Worked by hand: "small" is relative to the objects of the command's name (its
+    shape, and its colour when given), so a smaller circle of another colour does not
+    count against a coloured command; a map that prefers the next size up is a miss."""
+    tiny_blue, two_red, three_red = circle(1, 0, 0, "blue"), circle(2, 0, 1), circle(3, 0, 2)
+    scene = situation([tiny_blue, two_red, three_red], two_red)
+    ordered, confused = np.zeros((6, 6)), np.zeros((6, 6))
+    ordered[0, :3] = [0.9, 0.6, 0.2]  # by size: blue 1 first, then red 2
+    confused[0, :3] = [0.1, 0.3, 0.4]  # the size-3 circle above the size-2 target
+    lone = situation([two_red, WorldObject("square", "red", 1, Position(3, 3))], two_red)
+    reading = lambda command, sit, m: Reading("test", command, sit, None, None, None,  # noqa: E731
+                                              None if m is None else {"small": m, "big": np.zeros((6, 6))})
+    assert size_word_first(reading("walk to a red small circle", scene, ordered)) is True
+    assert size_word_first(reading("walk to a small circle", situation(scene.placed_objects, tiny_blue),
+                                    ordered)) is True
+    assert size_word_first(reading("walk to a red small circle", scene, confused)) is False
+    assert size_word_first(reading("walk to a small circle", lone, ordered)) is None  # no other circle
+    assert size_word_first(reading("walk to a circle", scene, None)) is None
+    s = summarize([reading("walk to a red small circle", scene, ordered),
+                   reading("walk to a red small circle", scene, confused),
+                   reading("walk to a small circle", lone, ordered)])["test"]
+    assert s["size_word_first"] == 50.0
+    flat = reading("walk to a red small circle", scene, np.full((6, 6), 1 / 36))
+    assert size_word_first(flat) is False  # a flat map ranks nothing first
+    heads = size_heads([reading("walk to a red small circle", scene, ordered), flat,
+                        reading("walk to a circle", scene, None)])
+    assert heads == {"small": (2, pytest.approx(0.45)), "big": (2, 0.0)}
+    assert size_heads_table(heads).splitlines()[2:] == ["| small | 2 | 0.45 |", "| big | 2 | 0 |"]
 
 
 def test_noun_colours_rank_each_colour_against_the_best_object_of_the_shape():

@@ -69,10 +69,13 @@ def test_metrics_for_a_model_and_along_snapshots(dataset, run, capsys):
     assert main(["explain", "--metrics", "--data", str(dataset), "--splits", "test", "visual",
                  "--max-examples", "5", "--threads", "1"]) == 0
     out = capsys.readouterr().out
-    metrics, colours = out.split("\n\n")
+    metrics, colours, *heads = out.split("\n\n")
     assert [line.split("|")[1].strip() for line in metrics.splitlines()[2:] if line.startswith("| ")] == \
         ["A test", "C visual", "all"]
     assert colours.splitlines()[1].startswith("| noun | ")
+    size_rows = int(metrics.splitlines()[-1].split("|")[8])  # "all": episodes with a size word
+    assert len(heads) <= 1 and (heads or not size_rows)  # a size word's episodes give the heads' table
+    assert not heads or heads[0].splitlines()[1] == "| head | maps | median range (max − min) |"
     assert main(["explain", "--metrics", "--progression", str(run), "--data", str(dataset), "--splits", "test",
                  "--threads", "1"]) == 0
     lines = capsys.readouterr().out.splitlines()

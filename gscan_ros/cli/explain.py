@@ -213,6 +213,8 @@ def _metrics(args: argparse.Namespace) -> int:
         noun_colours_table,
         progression_metrics,
         progression_table,
+        size_heads,
+        size_heads_table,
         snapshots,
         step0_readings,
         summarize,
@@ -232,4 +234,9 @@ def _metrics(args: argparse.Namespace) -> int:
     print("\nThe noun's map at each object of its shape, by colour, relative to the scene's highest such value "
           "(mean over objects, in scenes with two or more; all splits above):")
     print(noun_colours_table(noun_colours(readings)), end="")
+    heads = size_heads(readings)
+    if heads:
+        print("\nThe size words' heads (big|small share one module): how far each map is from flat, over the "
+              "episodes with a size word; ~0 is a head that passes nothing (docs/interpretability.md):")
+        print(size_heads_table(heads), end="")
     return 0

@@ -9,8 +9,10 @@
 - `step0_readings` + `summarize`: per split, how often that map's argmax is the target's
   cell (localization) or 1-2 cells from it (beside), how often the noun's own map peaks
   on an object of the noun's shape (where a failed localization goes wrong: the noun, or
-  the words composed on top of it), and the Spearman correlation between the
-  size-ordering value at each object of the referred shape and its true size.
+  the words composed on top of it), the Spearman correlation between the
+  size-ordering value at each object of the referred shape and its true size, and how
+  often the size word's own map ranks the target first among the objects the command
+  names (the Spearman averages over every pair and hides a confused top two).
 - `noun_colours`: how the noun's map ranks the colours of its shape (split C's red square,
   never a training target, is the combination it learns to rank low).
 - `snapshots`: a run's `step_*.pt` files in update order (Fig. 4, metrics along training).
@@ -203,11 +205,21 @@ class Reading:
     referent: np.ndarray | None  # the map the noun phrase passes up
     ordering: np.ndarray | None  # the size-ordering map (commands with a size word)
     noun: np.ndarray | None = None  # the noun's own map
+    size_heads: dict[str, np.ndarray] | None = None  # "small" and "big": both heads' maps (a size word)
 
     @cached_property
+    def frame(self) -> CommandFrame:
+        return CommandFrame.parse(self.command)
+
+    @property
     def shape(self) -> str:
         """The shape the command's noun names."""
-        return CommandFrame.parse(self.command).shape
+        return self.frame.shape
+
+    @property
+    def size_word(self) -> np.ndarray | None:
+        """The map of the command's size word (None without one)."""
+        return self.size_heads.get(self.frame.size) if self.size_heads and self.frame.size else None
 
 
 @torch.no_grad()
@@ -227,6 +239,10 @@ def step0_readings(policy: Policy, episodes: Sequence[Episode], batch_size: int 
             reading = Reading(ep.split, ep.command, ep.situation, attention.get(word),
                               size_ordering(attention, antonyms))
             reading.noun = attention.get(reading.shape)
+            size = reading.frame.size
+            if size in attention and size in antonyms:
+                other = "big" if size == "small" else "small"
+                reading.size_heads = {size: attention[size], other: antonyms[size]}
             readings.append(reading)
     return readings
 
@@ -236,14 +252,16 @@ def summarize(readings: Iterable[Reading]) -> dict[str, dict]:
     referent map); the same by chance for a uniform pick among the objects; beside % and
     on-agent % (the map peaks 1-2 cells from the target, or on the agent's cell); noun on
     shape % (of episodes with a noun map: it peaks on an object of the noun's shape);
-    episodes with a defined size correlation and their mean Spearman (nan if none)."""
+    episodes with a defined size correlation and their mean Spearman (nan if none); size
+    word first % (`size_word_first`) of the episodes with a size word whose command names
+    two or more objects."""
     groups: dict[str, list[Reading]] = defaultdict(list)
     for r in readings:
         groups[r.split].append(r)
         groups["all"].append(r)
     out = {}
     for split in sorted(groups, key=lambda s: (s == "all", SPLIT_LETTERS.get(s, "~"), s)):
-        hits, beside, on_agent, chance, rhos, noun_hits = [], [], [], [], [], []
+        hits, beside, on_agent, chance, rhos, noun_hits, size_first = [], [], [], [], [], [], []
         for r in groups[split]:
             if r.noun is not None:
                 peak = peak_cell(r.noun)
@@ -261,6 +279,9 @@ def summarize(readings: Iterable[Reading]) -> dict[str, dict]:
                 rho = size_correlation(r.ordering, r.situation, r.shape)
                 if not np.isnan(rho):
                     rhos.append(rho)
+            first = size_word_first(r)
+            if first is not None:
+                size_first.append(first)
         out[split] = {
             "episodes": len(groups[split]),
             "localization": 100.0 * float(np.mean(hits)) if hits else float("nan"),
@@ -270,8 +291,44 @@ def summarize(readings: Iterable[Reading]) -> dict[str, dict]:
             "noun_on_shape": 100.0 * float(np.mean(noun_hits)) if noun_hits else float("nan"),
             "size_episodes": len(rhos),
             "size_spearman": float(np.mean(rhos)) if rhos else float("nan"),
+            "size_word_first": 100.0 * float(np.mean(size_first)) if size_first else float("nan"),
         }
     return out
+
+
+def size_word_first(r: Reading) -> bool | None:
+    """Is the size word's own map higher at the target than at every other object the
+    command names (its shape, and its colour when it has one: what "small" and "big" are
+    relative to, GSCAN_SPEC §1.3)? None without a size word, a target or a second such
+    object. A map ordered by size passes whatever the parse feeds it."""
+    target = r.situation.target_object
+    if r.size_word is None or target is None:
+        return None
+    colour = r.frame.color
+    named = [o for o in r.situation.placed_objects
+             if o.shape == r.shape and (colour is None or o.color == colour) and o.position != target.position]
+    if not named:
+        return None
+    at_target = r.size_word[target.position.row, target.position.col]
+    return bool(at_target > max(r.size_word[o.position.row, o.position.col] for o in named))
+
+
+def size_heads(readings: Iterable[Reading]) -> dict[str, tuple[int, float]]:
+    """Per head ("small", "big"): (maps, median of max − min over the grid), over the
+    episodes with a size word. The antonym overlap loss min–max normalises each map, so a
+    head whose map is flat scores no overlap at all: a range of ~0 is a head that took
+    that way out and passes no size information up."""
+    ranges: dict[str, list[float]] = defaultdict(list)
+    for r in readings:
+        for head, grid in (r.size_heads or {}).items():
+            ranges[head].append(float(grid.max() - grid.min()))
+    return {head: (len(v), float(np.median(v))) for head, v in sorted(ranges.items(), reverse=True)}
+
+
+def size_heads_table(found: Mapping[str, tuple[int, float]]) -> str:
+    lines = ["| head | maps | median range (max − min) |", "|---|---:|---:|"]
+    lines += [f"| {head} | {n} | {value:.3g} |" for head, (n, value) in found.items()]
+    return "\n".join(lines) + "\n"
 
 
 def noun_colours(readings: Iterable[Reading]) -> dict[str, dict[str, tuple[int, float]]]:
@@ -318,13 +375,13 @@ def noun_colours_table(found: Mapping[str, Mapping[str, tuple[int, float]]]) -> 
 def metrics_table(summary: Mapping[str, Mapping]) -> str:
     """`summarize`'s result as a markdown table."""
     lines = ["| split | episodes | localization % | chance % | beside % | on agent % | noun on its shape % "
-             "| size episodes | size Spearman |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "| size episodes | size Spearman | size word first % |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for split, m in summary.items():
         name = f"{SPLIT_LETTERS[split]} {split}" if split in SPLIT_LETTERS else split
         lines.append(f"| {name} | {m['episodes']} | {m['localization']:.1f} | {m['localization_chance']:.1f} "
                      f"| {m['beside']:.1f} | {m['on_agent']:.1f} | {m['noun_on_shape']:.1f} | {m['size_episodes']} "
-                     f"| {m['size_spearman']:.3f} |")
+                     f"| {m['size_spearman']:.3f} | {m['size_word_first']:.1f} |")
     return "\n".join(lines) + "\n"
 
 
@@ -369,8 +426,8 @@ def _weakest_text(weakest: tuple[str, str, float] | None) -> str:
 
 def progression_table(rows: Sequence[Mapping]) -> str:
     lines = ["| update | dev exact match % | localization % | beside % | on agent % | noun on its shape % "
-             "| size Spearman | noun's weakest colour |",
-             "|---:|---:|---:|---:|---:|---:|---:|---|"]
+             "| size Spearman | size word first % | noun's weakest colour |",
+             "|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     for r in rows:
         em = r["dev_exact_match"]
         em_text = "-" if em is None else f"{em:.1f}"
@@ -378,5 +435,5 @@ def progression_table(rows: Sequence[Mapping]) -> str:
             em_text += f" (at {r['validated_at']})"
         lines.append(f"| {r['update']} | {em_text} | {r['localization']:.1f} | {r['beside']:.1f} "
                      f"| {r['on_agent']:.1f} | {r['noun_on_shape']:.1f} | {r['size_spearman']:.3f} "
-                     f"| {_weakest_text(r.get('weakest_colour'))} |")
+                     f"| {r['size_word_first']:.1f} | {_weakest_text(r.get('weakest_colour'))} |")
     return "\n".join(lines) + "\n"

@@ -41,19 +41,27 @@ SNAPSHOT_PATTERN = re.compile(r"step_(\d+)\.pt")
 
 
 # ------------------------------------------------------------------------ one episode
-def size_ordering(attention: Mapping[str, np.ndarray], antonyms: Mapping[str, np.ndarray]) -> np.ndarray | None:
-    """(-att_small + att_big) / 2 (paper): high where big objects are, low at small ones.
-
-    `attention` maps words to their maps, `antonyms` a word to its antonym head's map on
-    the same inputs (`StepOutput.antonyms`). None when the command has no size word or
-    the model has no antonym head for it (big and small in separate modules).
-    """
+def size_heads_of(attention: Mapping[str, np.ndarray],
+                  antonyms: Mapping[str, np.ndarray]) -> dict[str, np.ndarray] | None:
+    """{"small": map, "big": map}: both heads of the command's size word, run on the same
+    inputs (`attention` maps words to their maps, `antonyms` a word to its antonym head's
+    map, `StepOutput.antonyms`). None when the command has no size word or the model has
+    no antonym head for it (big and small in separate modules)."""
     for word in SIZE_ADJECTIVES:
         if word in attention and word in antonyms:
-            own, other = np.asarray(attention[word]), np.asarray(antonyms[word])
-            big, small = (own, other) if word == "big" else (other, own)
-            return ((big - small) / 2).astype(np.float32)
+            other = "big" if word == "small" else "small"
+            return {word: np.asarray(attention[word]), other: np.asarray(antonyms[word])}
     return None
+
+
+def size_ordering(attention: Mapping[str, np.ndarray], antonyms: Mapping[str, np.ndarray]) -> np.ndarray | None:
+    """(-att_small + att_big) / 2 (paper): high where big objects are, low at small ones;
+    None without both heads (`size_heads_of`)."""
+    return ordering_of(size_heads_of(attention, antonyms))
+
+
+def ordering_of(heads: Mapping[str, np.ndarray] | None) -> np.ndarray | None:
+    return None if heads is None else ((heads["big"] - heads["small"]) / 2).astype(np.float32)
 
 
 def referent_word(graph: CommandGraph) -> str | None:
@@ -235,15 +243,10 @@ def step0_readings(policy: Policy, episodes: Sequence[Episode], batch_size: int 
         _, maps = rollout.step(np.stack([World(ep.situation).encode() for ep in chunk]))
         for row, (ep, graph) in enumerate(zip(chunk, graphs)):
             attention, antonyms = rollout.word_maps(maps, row)
-            word = referent_word(graph)
-            reading = Reading(ep.split, ep.command, ep.situation, attention.get(word),
-                              size_ordering(attention, antonyms))
-            reading.noun = attention.get(reading.shape)
-            size = reading.frame.size
-            if size in attention and size in antonyms:
-                other = "big" if size == "small" else "small"
-                reading.size_heads = {size: attention[size], other: antonyms[size]}
-            readings.append(reading)
+            heads = size_heads_of(attention, antonyms)
+            shape = CommandFrame.parse(ep.command).shape
+            readings.append(Reading(ep.split, ep.command, ep.situation, attention.get(referent_word(graph)),
+                                    ordering_of(heads), attention.get(shape), heads))
     return readings
 
 

@@ -211,7 +211,7 @@ def test_paper_plan_covers_every_column_with_one_recipe():
     assert len(set(budgets.values()) - {budgets.pop("seq2seq_160k")}) == 1  # one budget, and its named variant
     columns = {column for column, _ in seeds}
     assert columns == {"seq2seq", "seq2seq_160k", "state", "attention+state", "constituency", "dependency",
-                       "semantic", "semantic_minmax", "semantic_add"}
+                       "semantic", "semantic_minmax", "semantic_add", "dependency_cosine"}
     assert all(len(s) == 3 for (column, _), s in seeds.items() if column == "semantic")
     assert {r.data.k_shot for r in plan.runs if r.data.split_kind == "compositional"} == {1, 5, 11, 51}
     assert plan.runs[0].name == "semantic_s2"  # `first:`: Semantic has three seeds from the start
@@ -219,6 +219,9 @@ def test_paper_plan_covers_every_column_with_one_recipe():
     assert {r.entry for r in first_round} == {entry for _, entry in seeds}
     minmax = next(r for r in plan.runs if r.column == "semantic_minmax")
     assert resolve_config(plan, minmax).model["size_map"] == "minmax"
+    cosine = next(r for r in plan.runs if r.column == "dependency_cosine")
+    assert resolve_config(plan, cosine).model["overlap"] == "cosine" and resolve_config(plan, cosine).parser == \
+        "dependency"
 
 
 # ------------------------------------------------------------------------------ report

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from gscan_ros.model.compositional import ModelConfig
+from gscan_ros.model.compositional import ModelConfig, antonym_overlap
 from gscan_ros.model.layout import Layout
 from gscan_ros.model.sparse_encoder import sparse_states
 
@@ -144,3 +144,19 @@ def test_a_modules_state_moves_its_map_only_when_added(attention_state):
 def test_bad_attention_state_is_named(kwargs, message):
     with pytest.raises(ValueError, match=message):
         ModelConfig(**kwargs)
+
+
+def test_a_flat_head_escapes_the_minmax_overlap_but_not_the_cosine_one():
+    """Worked by hand on 36 cells: min-max normalises a flat map to ~0, so its overlap with
+    any map is ~0 (the way out Dependency's "small" head takes); the cosine overlap of a
+    flat map and a one-hot map is (1/36) / (1/6 · 1) = 1/6, and 0 only for disjoint peaks."""
+    flat, one_hot, other = torch.full((36,), 1 / 36), torch.zeros(36), torch.zeros(36)
+    one_hot[3], other[20] = 1.0, 1.0
+    minmax, cosine = ModelConfig(), ModelConfig(overlap="cosine")
+    assert antonym_overlap(flat, one_hot, minmax).item() == pytest.approx(0.0, abs=1e-5)
+    assert antonym_overlap(one_hot, one_hot, minmax).item() == pytest.approx(1 / 36, rel=1e-3)
+    assert antonym_overlap(flat, one_hot, cosine).item() == pytest.approx(1 / 6)
+    assert antonym_overlap(one_hot, other, cosine).item() == 0.0
+    assert antonym_overlap(one_hot, one_hot, cosine).item() == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="overlap must be one of"):
+        ModelConfig(overlap="sum")

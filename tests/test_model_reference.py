@@ -1,6 +1,6 @@
 """The fast compositional network against the plain per-graph, per-node reference.
 
-For every setting of `message`, `attention_state` and `size_map`, with and without the
+For every setting of `message`, `attention_state`, `size_map` and `overlap`, with and without the
 WordNet lexicon's antonym heads, and for graphs of all three parsers: teacher forcing's
 logits, antonym overlap, loss and every parameter's gradient, and closed-loop decoding's
 logits and maps, equal `ReferenceNetwork`'s on the same parameters (float64, eval mode).
@@ -40,6 +40,7 @@ PARSES = {"semantic": ("semantic", "wordnet"), "semantic-no-lexicon": ("semantic
 CONFIGS = [
     *({"message": m, "attention_state": a, "size_map": s}
       for m in ("attention", "attention+state") for a in ("broadcast", "add") for s in ("softmax", "minmax")),
+    {"overlap": "cosine"}, {"overlap": "cosine", "size_map": "minmax"},
     {"message": "state", "rnn_dim": 40},  # CG's no-attention config
     {"cnn_kernels": (1, 5, 13)},  # a kernel wider than the grid, cropped by the sparse encoder
 ]

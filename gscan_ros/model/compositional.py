@@ -45,6 +45,7 @@ from gscan_ros.world.types import GRID_SIZE, NUM_CHANNELS, SUPPORTED_GRID_SIZES,
 MESSAGES = ("attention", "state", "attention+state")
 ATTENTION_STATES = ("broadcast", "add")
 SIZE_MAPS = ("softmax", "minmax")
+OVERLAPS = ("minmax", "cosine")
 
 
 # --------------------------------------------------------------------------- config
@@ -85,6 +86,13 @@ class ModelConfig(SerializableConfig):
     attention (this project's default), or 'minmax': the min-max normalised map of the
     overlap loss, as the original code passes it (CG `SentenceNetwork.loss`; quirk Q16, docs/model.md) and as the
     published numbers were produced."""
+    overlap: str = "minmax"
+    """How the antonym overlap loss compares a word's map with its antonym head's:
+    'minmax' (CG `SentenceNetwork.loss`): Σ_cells minmax(a)·minmax(b) / cells, which a
+    flat map satisfies for free (it normalises to zeros) — the way out Dependency's "small"
+    head takes (docs/results.md, "The size words"); 'cosine': Σ a·b / (|a| |b|) of the maps
+    as passed, which is 0 only for maps on disjoint cells, so a flat head pays for it
+    (1/√cells against a one-hot map)."""
     num_actions: int = len(Action)
     """Output classes: the six gSCAN actions plus EOS, ids = `Action` values."""
 
@@ -95,6 +103,8 @@ class ModelConfig(SerializableConfig):
             raise ValueError(f"attention_state must be one of {ATTENTION_STATES}, got {self.attention_state!r}")
         if self.size_map not in SIZE_MAPS:
             raise ValueError(f"size_map must be one of {SIZE_MAPS}, got {self.size_map!r}")
+        if self.overlap not in OVERLAPS:
+            raise ValueError(f"overlap must be one of {OVERLAPS}, got {self.overlap!r}")
         if self.attention_state == "add" and not self.uses_attention:
             raise ValueError("attention_state='add' needs attention maps; message='state' has none")
         # Sizes come from YAML and checkpoints: a list, a float or a negative fails here, not in torch.
@@ -348,14 +358,12 @@ class CompositionalNetwork(nn.Module):
         return torch.where(passes_minmax[..., None], minmax_normalize(maps), maps)
 
     def overlap(self, maps: torch.Tensor, antonym_pairs: torch.Tensor, pair_mask: torch.Tensor) -> torch.Tensor:
-        """Σ_cells(minmax(map_word) * minmax(map_antonym)) / cells per row (CG `SentenceNetwork.loss`);
-        with size_map='minmax' the pairs' maps arrive normalised (`passed_maps`)."""
+        """Per row, Σ over its antonym pairs of `antonym_overlap` of the two heads' maps (as
+        passed on: with size_map='minmax' they arrive normalised, `passed_maps`)."""
         n, P, _ = antonym_pairs.shape
         cells = maps.shape[-1]
         sel = maps.gather(1, antonym_pairs.reshape(n, 2 * P, 1).expand(-1, -1, cells)).view(n, P, 2, cells)
-        norm = sel if self.cfg.size_map == "minmax" else minmax_normalize(sel)
-        prod = (norm[:, :, 0] * norm[:, :, 1]).sum(-1) / cells
-        return (prod * pair_mask).sum(-1)
+        return (antonym_overlap(sel[:, :, 0], sel[:, :, 1], self.cfg) * pair_mask).sum(-1)
 
     # -- teacher forcing
     @property
@@ -389,6 +397,16 @@ class CompositionalNetwork(nn.Module):
         per_step = nll + self.cfg.antonym_weight * overlap
         per_example = per_step.new_zeros(batch.layout.batch).index_add(0, batch.rows, per_step) / batch.lengths
         return TeacherOutput(per_example.mean(), logits, nll, overlap)
+
+
+def antonym_overlap(a: torch.Tensor, b: torch.Tensor, cfg: ModelConfig) -> torch.Tensor:
+    """The overlap of maps `a` and `b` (last dim = cells) as `cfg.overlap` defines it; the
+    one implementation the fast paths and the reference share."""
+    if cfg.overlap == "cosine":
+        return (a * b).sum(-1) / (a.norm(dim=-1) * b.norm(dim=-1)).clamp_min(1e-12)
+    if cfg.size_map != "minmax":  # with size_map='minmax' the maps passed on are normalised already
+        a, b = minmax_normalize(a), minmax_normalize(b)
+    return (a * b).sum(-1) / a.shape[-1]
 
 
 def minmax_normalize(maps: torch.Tensor) -> torch.Tensor:

@@ -22,7 +22,7 @@ import torch
 import torch.nn.functional as F
 
 from gscan_ros.language.graph import CommandGraph
-from gscan_ros.model.compositional import CompositionalNetwork, minmax_normalize
+from gscan_ros.model.compositional import CompositionalNetwork, antonym_overlap, minmax_normalize
 
 
 @dataclass
@@ -80,12 +80,7 @@ class ReferenceNetwork:
                     for other in spec.antonym_of(node.head):  # the antonym's head on the same inputs
                         shadow = self.passed(node.module, self.attention(node.module, other, obs, args, h[nid]))
                         antonym_maps.setdefault(nid, []).append(shadow)
-                        # The overlap compares min-max normalised maps; with size_map='minmax' the
-                        # maps passed on already are.
-                        a, b = att[nid], shadow
-                        if cfg.size_map != "minmax":
-                            a, b = minmax_normalize(a), minmax_normalize(b)
-                        overlap = overlap + (a * b).sum() / cfg.cells
+                        overlap = overlap + antonym_overlap(att[nid], shadow, cfg)
                     x = (obs * att[nid][:, None]).sum(0)  # Σ_cells obs ⊙ att^w
                 else:  # message='state': no maps
                     x = obs.sum(0)

@@ -211,14 +211,17 @@ def test_paper_plan_covers_every_column_with_one_recipe():
     assert len(set(budgets.values()) - {budgets.pop("seq2seq_160k")}) == 1  # one budget, and its named variant
     columns = {column for column, _ in seeds}
     assert columns == {"seq2seq", "seq2seq_160k", "state", "attention+state", "constituency", "dependency",
-                       "semantic", "semantic_minmax", "semantic_add", "dependency_cosine"}
-    assert all(len(s) == 3 for (column, _), s in seeds.items() if column == "semantic")
+                       "semantic", "semantic_minmax", "semantic_add", "dependency_cosine",
+                       "semantic_faithful"}
+    assert all(len(s) == 3 for (column, _), s in seeds.items() if column in ("semantic", "semantic_faithful"))
     assert {r.data.k_shot for r in plan.runs if r.data.split_kind == "compositional"} == {1, 5, 11, 51}
     assert plan.runs[0].name == "semantic_s2"  # `first:`: Semantic has three seeds from the start
     first_round = plan.runs[1:len(seeds) + 1]  # then every column's first seed
     assert {r.entry for r in first_round} == {entry for _, entry in seeds}
     minmax = next(r for r in plan.runs if r.column == "semantic_minmax")
     assert resolve_config(plan, minmax).model["size_map"] == "minmax"
+    faithful = resolve_config(plan, next(r for r in plan.runs if r.column == "semantic_faithful"))
+    assert (faithful.batch_size, faithful.lr, faithful.lr_decay, faithful.screen_seeds) == (200, 0.001, "none", 0)
     cosine = next(r for r in plan.runs if r.column == "dependency_cosine")
     assert resolve_config(plan, cosine).model["overlap"] == "cosine" and resolve_config(plan, cosine).parser == \
         "dependency"

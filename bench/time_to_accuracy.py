@@ -21,6 +21,10 @@ median and range over the seeds of the updates and minutes to 90 % and to the ta
 seed that did not get there counts as slower than every seed that did), as the last line
     time-to-accuracy: median over N seeds reached 95.0% after U updates, M.M minutes (K of N reached)
 or  time-to-accuracy: median over N seeds not reached (K of N reached)
+
+`--from-runs RUN_DIR ...` trains nothing: it reads runs already trained (e.g. the paper
+plan's `results/paper/semantic_faithful_s*`, which validate on 500 dev episodes every
+1,000 updates) and prints the same summary from their `metrics.jsonl`.
 """
 from __future__ import annotations
 
@@ -54,7 +58,7 @@ def throughput(metrics_path: Path) -> float:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--config", required=True, metavar="FILE", help="training config (YAML)")
+    ap.add_argument("--config", metavar="FILE", help="training config (YAML); required unless --from-runs")
     ap.add_argument("--target", type=float, default=95.0, metavar="PERCENT", help="dev exact match to reach (95)")
     ap.add_argument("--max-minutes", type=float, default=30.0, metavar="M", help="time limit (30)")
     seeds = ap.add_mutually_exclusive_group()
@@ -69,6 +73,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default=None, metavar="RUN_DIR",
                     help="run directory (default: runs/tta/<config>_s<seed>; with --seeds, the folder of the "
                          "seeds' run directories, default runs/tta/<config>)")
+    ap.add_argument("--from-runs", nargs="+", metavar="RUN_DIR",
+                    help="summarize these runs' metrics.jsonl (one per seed) instead of training")
     mode = ap.add_mutually_exclusive_group()
     mode.add_argument("--resume", action="store_true", help="continue RUN_DIR from its last.pt")
     mode.add_argument("--overwrite", action="store_true", help="replace a run already in RUN_DIR")
@@ -76,10 +82,16 @@ def main(argv: list[str] | None = None) -> int:
 
     from gscan_ros.errors import GscanError
 
-    stem = Path(args.config).stem
     try:
         if not 0 < args.target <= 100:
             raise GscanError(f"--target must be in (0, 100], got {args.target}")
+        if args.from_runs:
+            marks = [marks_of(validations_of(Path(d)), args.target) for d in args.from_runs]
+            summarize(marks, [Path(d).name for d in args.from_runs], args.target)
+            return 0
+        if args.config is None:
+            raise GscanError("--config FILE is needed to train (or --from-runs RUN_DIR ... to read runs)")
+        stem = Path(args.config).stem
         if args.max_minutes <= 0 or args.validate_every <= 0 or args.threads < 1:
             raise GscanError("--max-minutes, --validate-every and --threads must be positive")
         data = ensure_data(args.data)
@@ -96,8 +108,23 @@ def main(argv: list[str] | None = None) -> int:
     except GscanError as exc:
         print(f"time_to_accuracy: error: {exc}", file=sys.stderr)
         return 1
-    summarize(marks, args.seeds, args.target)
+    summarize(marks, [f"seed {s}" for s in args.seeds], args.target)
     return 0
+
+
+def validations_of(run: Path) -> list[dict]:
+    """The validation records of a run's metrics.jsonl."""
+    from gscan_ros.errors import GscanError
+
+    path = run / "metrics.jsonl"
+    if not path.is_file():
+        raise GscanError(f"{run}: no metrics.jsonl (not a training run)")
+    return [r for r in map(json.loads, path.read_text().splitlines()) if r.get("event") == "validation"]
+
+
+def marks_of(validations: list[dict], target: float) -> dict[float, tuple[int, float] | None]:
+    """(updates, minutes) at which the run first reached 90 % and the target (None: not reached)."""
+    return {percent: first_at(validations, percent) for percent in sorted({90.0, target})}
 
 
 def first_at(validations: list[dict], percent: float) -> tuple[int, float] | None:
@@ -134,7 +161,7 @@ def run_seed(args: argparse.Namespace, seed: int, out: Path, data: str,
     result = train(cfg, data, out, resume=resume, overwrite=args.overwrite, progress=False,
                    on_validation=row)
     records = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
-    validations = [r for r in records if r.get("event") == "validation"]
+    validations = validations_of(out)
     for r in records:
         if r.get("event") == "screen":
             print(f"screen: candidate {r['candidate']} (seed {r['seed']}) after {r['step']} updates: "
@@ -143,7 +170,7 @@ def run_seed(args: argparse.Namespace, seed: int, out: Path, data: str,
         elif r.get("event") == "screen_end":
             print(f"screen: training seed {r['seed']}; {r['screen_updates']} updates spent on "
                   f"{r['candidates']} candidate(s) are in the minutes below")
-    marks = {percent: first_at(validations, percent) for percent in sorted({90.0, args.target})}
+    marks = marks_of(validations, args.target)
     hit = marks[args.target]
     if hit is not None:
         print(f"time-to-accuracy: reached {args.target:.1f}% dev exact match after {hit[0]} updates, "
@@ -163,22 +190,23 @@ def median_of(values: list[tuple[int, float] | None]) -> tuple[int, float] | Non
     return ordered[len(ordered) // 2]
 
 
-def summarize(marks: list[dict], seeds: list[int], target: float) -> None:
+def summarize(marks: list[dict], labels: list[str], target: float) -> None:
+    """Per threshold, each run's updates and minutes and the range; then the last line."""
     for percent in sorted({90.0, target}):
         values = [m[percent] for m in marks]
         got = [v for v in values if v is not None]
         spread = (f"; range {min(u for u, _ in got)}-{max(u for u, _ in got)} updates, "
                   f"{min(t for _, t in got):.1f}-{max(t for _, t in got):.1f} minutes" if got else "")
-        per_seed = ", ".join(f"seed {s}: " + ("not reached" if v is None else f"{v[0]} upd. / {v[1]:.1f} min")
-                             for s, v in zip(seeds, values))
+        per_seed = ", ".join(f"{s}: " + ("not reached" if v is None else f"{v[0]} upd. / {v[1]:.1f} min")
+                             for s, v in zip(labels, values))
         print(f"{percent:.0f} %: {per_seed}{spread}")
     reached = sum(m[target] is not None for m in marks)
     median = median_of([m[target] for m in marks])
     if median is None:
-        print(f"time-to-accuracy: median over {len(seeds)} seeds not reached ({reached} of {len(seeds)} reached)")
+        print(f"time-to-accuracy: median over {len(labels)} seeds not reached ({reached} of {len(labels)} reached)")
     else:
-        print(f"time-to-accuracy: median over {len(seeds)} seeds reached {target:.1f}% after {median[0]} updates, "
-              f"{median[1]:.1f} minutes ({reached} of {len(seeds)} reached)")
+        print(f"time-to-accuracy: median over {len(labels)} seeds reached {target:.1f}% after {median[0]} updates, "
+              f"{median[1]:.1f} minutes ({reached} of {len(labels)} reached)")
 
 
 if __name__ == "__main__":

@@ -6,9 +6,11 @@
 - `explain --progression RUN_DIR "COMMAND" --out F.png` : Fig. 4 — rows are words,
   columns the run's step_<N>.pt snapshots (train with --set snapshot_every=N).
 - `explain --metrics --data DS` : per split, step-0 localization (how often the map the
-  noun phrase passes up peaks on the target's cell) and the Spearman correlation between
-  the size-ordering value at each object of the referred shape and its size; with
-  `--progression RUN_DIR`, the same along the snapshots.
+  noun phrase passes up peaks on the target's cell), the Spearman correlation between
+  the size-ordering value at each object of the referred shape and its size, how often
+  the size word's map ranks the target first, the noun's map by colour and how flat each
+  size head is (docs/interpretability.md); with `--progression RUN_DIR`, the numbers
+  along the snapshots.
 The situation comes from `--data DS --split S --index I`, `--situation FILE.json` or
 `--seed N` (a random world where the command has a unique referent; the default, seed 0).
 """

@@ -161,7 +161,7 @@ def run_seed(args: argparse.Namespace, seed: int, out: Path, data: str,
     result = train(cfg, data, out, resume=resume, overwrite=args.overwrite, progress=False,
                    on_validation=row)
     records = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
-    validations = validations_of(out)
+    validations = [r for r in records if r.get("event") == "validation"]
     for r in records:
         if r.get("event") == "screen":
             print(f"screen: candidate {r['candidate']} (seed {r['seed']}) after {r['step']} updates: "

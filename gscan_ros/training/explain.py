@@ -244,9 +244,10 @@ def step0_readings(policy: Policy, episodes: Sequence[Episode], batch_size: int 
         for row, (ep, graph) in enumerate(zip(chunk, graphs)):
             attention, antonyms = rollout.word_maps(maps, row)
             heads = size_heads_of(attention, antonyms)
-            shape = CommandFrame.parse(ep.command).shape
-            readings.append(Reading(ep.split, ep.command, ep.situation, attention.get(referent_word(graph)),
-                                    ordering_of(heads), attention.get(shape), heads))
+            reading = Reading(ep.split, ep.command, ep.situation, attention.get(referent_word(graph)),
+                              ordering_of(heads), size_heads=heads)
+            reading.noun = attention.get(reading.shape)  # the frame parsed once, cached on the reading
+            readings.append(reading)
     return readings
 
 

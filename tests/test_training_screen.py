@@ -74,6 +74,39 @@ def test_without_a_pass_the_best_candidate_is_kept_and_resumes_as_its_seed(tiny_
     assert_same_weights(screened / "last.pt", alone / "last.pt")
 
 
+def test_a_screen_stopped_between_candidates_resumes_at_the_next_one(tiny_dataset, tmp_path, monkeypatch):
+    """A stop during candidate 2 keeps candidates 0 and 1 (last.pt holds the better, 1000);
+    the resumed screen trains only candidate 2 and ends as an unstopped screen does."""
+    torch.set_num_threads(1)
+    args = ["--set", "screen_seeds=3", "--set", "screen_updates=2", "--set", "max_updates=4"]
+
+    def stop():
+        raise KeyboardInterrupt
+
+    readings = iter([5.0, 8.0])  # both below half of chance (9.5): rejected
+    import gscan_ros.training.trainer as trainer
+
+    monkeypatch.setattr(trainer, "summarize", lambda readings_: {"all": {
+        "localization": next(readings, None) or stop(), "localization_chance": 19.0, "size_spearman": 0.0}})
+    stopped = tmp_path / "stopped"
+    assert run_train(tiny_dataset, stopped, *args) != 0
+    ckpt = read_checkpoint(stopped / "last.pt")
+    assert (ckpt["train_seed"], ckpt["step"], ckpt["screen"]) == (1000, 2, {"next_candidate": 2, "localization": 8.0})
+
+    script_localization(monkeypatch, [3.0])
+    assert run_train(tiny_dataset, stopped, *args, "--resume") == 0
+    screens = [(r["candidate"], r["seed"]) for r in records(stopped) if r["event"] == "screen"]
+    assert screens == [(0, 0), (1, 1000), (2, 2000)]
+    end = next(r for r in records(stopped) if r["event"] == "screen_end")
+    assert (end["seed"], end["candidates"], end["screen_updates"]) == (1000, 3, 6)
+    assert "screen" not in read_checkpoint(stopped / "last.pt")
+
+    script_localization(monkeypatch, [5.0, 8.0, 3.0])
+    whole = tmp_path / "whole"
+    assert run_train(tiny_dataset, whole, *args) == 0
+    assert_same_weights(stopped / "last.pt", whole / "last.pt")
+
+
 @pytest.mark.parametrize("overrides, named", [
     (["screen_seeds=4", "model_kind=seq2seq"], "screen_seeds"),
     (["screen_seeds=4", "model.message=state"], "screen_seeds"),

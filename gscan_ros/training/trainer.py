@@ -15,6 +15,7 @@ import random
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Callable, Iterator
 
 import numpy as np
@@ -266,6 +267,7 @@ class Run:
             raise ConfigError("screen_seeds runs on one process; screen first, then train on several ranks")
         self.best, self.elapsed_before = -1.0, 0.0
         self.last_metrics: dict = {}
+        self.screen_resume: dict | None = None  # a screen stopped between candidates (`resume`)
         self.fresh_start(cfg.seed)
 
     def fresh_start(self, seed: int) -> None:
@@ -292,6 +294,8 @@ class Run:
         self.best = float(ckpt["best_dev_exact_match"])
         self.elapsed_before = float(ckpt.get("elapsed_s", 0.0))
         _restore_rng(ckpt["rng"], self.ranks.device)
+        if "screen" in ckpt:  # stopped during the seed screen: it goes on at the next candidate
+            self.screen_resume = {**ckpt["screen"], "rng": ckpt["rng"]}
 
     def start(self, resumed: bool) -> None:
         """Make the update step (DDP joins here) and, on rank 0, the run files and the start record."""
@@ -323,7 +327,7 @@ class Run:
     def train_loop(self) -> None:
         """Update until max_updates, the time budget or the target dev exact match."""
         cfg, ranks, main = self.cfg, self.ranks, self.ranks.is_main
-        if self.step == 0 and cfg.screen_seeds > 1:
+        if cfg.screen_seeds > 1 and (self.step == 0 or self.screen_resume):
             self.screen()
             self.checkpoint(self.files.last, self.last_metrics, training_state=True)  # screening is not redone
         window = _LossWindow()
@@ -363,13 +367,24 @@ class Run:
         """Seed screening (TrainConfig.screen_seeds): train candidates in turn for
         `screen_updates` updates each and keep the first whose step-0 noun-phrase maps
         pass `screen_passes` on the dev subset, else the best; one `screen`
-        record per candidate, and the run continues from the kept candidate's state."""
+        record per candidate, and the run continues from the kept candidate's state.
+
+        After each rejected candidate, last.pt holds the best candidate so far and the
+        next one's number, so a stopped screen resumes at that candidate (candidates are
+        independent: each starts from its own seed) instead of from the first."""
         cfg = self.cfg
         episodes = self.dev_eps[:SCREEN_EPISODES]
         kept: dict | None = None
-        for k in range(cfg.screen_seeds):
+        first = 0
+        if self.screen_resume:  # the state resume() loaded is the best candidate so far
+            first = int(self.screen_resume["next_candidate"])
+            kept = {"localization": float(self.screen_resume["localization"]), "rng": self.screen_resume["rng"],
+                    **{name: getattr(self, name) for name in SCREEN_STATE}}
+            self.screen_resume = None
+        passed = False
+        for k in range(first, cfg.screen_seeds):
             seed = cfg.seed + SCREEN_SEED_STRIDE * k
-            if k:
+            if k:  # candidate 0 is the state __init__ made from the run's own seed
                 seed_everything(seed)
                 self.fresh_start(seed)
                 self.make_step()
@@ -394,6 +409,9 @@ class Run:
                         **{name: getattr(self, name) for name in SCREEN_STATE}}
             if passed:
                 break
+            if k + 1 < cfg.screen_seeds:
+                self.checkpoint(self.files.last, {}, training_state=True, screened=kept,
+                                screen={"next_candidate": k + 1, "localization": kept["localization"]})
         for name in SCREEN_STATE:
             setattr(self, name, kept[name])
         _restore_rng(kept["rng"], self.ranks.device)
@@ -431,16 +449,22 @@ class Run:
             self.on_validation(metrics)
         return metrics
 
-    def checkpoint(self, path: Path, metrics: dict, training_state: bool) -> None:
-        """The weights; with `training_state`, all `resume` needs too."""
+    def checkpoint(self, path: Path, metrics: dict, training_state: bool, screened: dict | None = None,
+                   screen: dict | None = None) -> None:
+        """The weights; with `training_state`, all `resume` needs too. `screened`: a
+        screen candidate's kept state (`screen`) to write instead of the current one, with
+        `screen` (where the screen goes on) recorded beside it."""
+        run = SimpleNamespace(**screened) if screened else self
         extra = {}
         if training_state:
-            extra = {"train_config": self.cfg.to_dict(), "optimizer": _to_cpu(self.optimizer.state_dict()),
-                     "rng": _rng_state(self.ranks.device),
-                     "cursor": {"epoch": self.cursor.epoch, "batch": self.cursor.batch}, "train_seed": self.seed,
+            extra = {"train_config": self.cfg.to_dict(), "optimizer": _to_cpu(run.optimizer.state_dict()),
+                     "rng": screened["rng"] if screened else _rng_state(self.ranks.device),
+                     "cursor": {"epoch": run.cursor.epoch, "batch": run.cursor.batch}, "train_seed": run.seed,
                      "best_dev_exact_match": self.best, "elapsed_s": self.elapsed()}
-        save_checkpoint(path, checkpoint_dict(self.model, parser=self.cfg.parser, lexicon=self.lexicon,
-                                              step=self.step, metrics=metrics, **extra))
+        if screen:
+            extra["screen"] = screen
+        save_checkpoint(path, checkpoint_dict(run.model, parser=self.cfg.parser, lexicon=self.lexicon,
+                                              step=run.step, metrics=metrics, **extra))
 
     def finish(self) -> dict:
         """Validate the last update if not yet done, ship best.pt as model.pt, write the end record."""

@@ -292,6 +292,8 @@ def test_report_puts_mean_and_std_beside_the_paper(results, tmp_path):
     assert "- Semantic, A: ours 92.00 ± 2.83 vs paper 96.73 ± 0.58 (-4.73); dev curve still rising" in text
     assert "- attention-only > +Attention > State: holds — mean over A" in text
     assert "- semantic > constituency: not checked, no results for Constituency." in text
+    # no Seq2seq run at k = 10: Semantic is checked against the paper's Seq2seq figure, and says so
+    assert "  - G k=10 (Seq2seq: the paper's figure, no run here): 40.00 vs 2.04, +37.96 (paper +34.87)" in text
     assert "![dev exact match vs updates, one panel per column](tables_curves.png)" in text
     assert (tmp_path / "tables_curves.png").read_bytes().startswith(b"\x89PNG")
 

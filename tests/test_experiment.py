@@ -305,6 +305,24 @@ def test_a_variant_column_is_measured_against_its_paper_columns_budget(tmp_path)
     assert "| Seq2Seq_160K | 0 | 1000 | 1000 | 50k (40M: 1/800) |" in out.read_text()  # Ruis et al.'s 40M, not 30M
 
 
+def test_report_counts_each_columns_screened_starts_on_target(tmp_path):
+    def screened(name, seed, candidates, kept):
+        fake_run(tmp_path / "r", name, "semantic", seed, {"test": split("A", 90.0)})
+        events = [{"event": "screen", "candidate": k, "seed": s, "passed": ok} for k, (s, ok) in enumerate(candidates)]
+        events.append({"event": "screen_end", "seed": kept, "candidates": len(candidates)})
+        with (tmp_path / "r" / name / "metrics.jsonl").open("a") as f:
+            f.write("".join(json.dumps(e) + "\n" for e in events))
+
+    screened("semantic_s0", 0, [(0, False), (1000, False), (2000, True)], 2000)
+    screened("semantic_s1", 1, [(1, False), (1001, False)], 1001)  # none passed: the best trained
+    fake_run(tmp_path / "r", "state_s0", "state", 0, {"test": split("A", 50.0)})  # not screened: no row
+    out = tmp_path / "tables.md"
+    assert report([tmp_path / "r"], out, "--no-curves") == 0
+    screens = out.read_text().split("## Seed screens")[1].split("##")[0]
+    assert [line for line in screens.splitlines() if line.startswith("| ") and "---" not in line][1:] == [
+        "| Semantic | 1 of 5 | s0: 2000 after 3 · s1: none of 2, 1001 trained |"]
+
+
 def test_report_is_byte_identical_and_refuses_to_overwrite(results, tmp_path, capsys):
     first, second = tmp_path / "one.md", tmp_path / "two.md"
     assert report(results, first, "--no-curves") == 0 and report(results[::-1], second, "--no-curves") == 0

@@ -19,7 +19,7 @@ import json
 import math
 import os
 import statistics
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from gscan_ros.errors import GscanError
@@ -82,6 +82,8 @@ class RunResult:
     rows: dict[str, float]  # table row -> exact match %
     curve: list[tuple[int, float]]  # (update, dev exact match %) from metrics.jsonl
     lengths: dict[int, tuple[float, int]]  # split I runs: target length -> (correct, episodes), splits pooled
+    screen: list[tuple[int, bool]] = field(default_factory=list)  # seed screen: (candidate seed, passed)
+    kept_seed: int | None = None  # the screened seed that trained (None: not screened)
 
 
 # ------------------------------------------------------------------------------ loading
@@ -135,8 +137,8 @@ def _read_run(path: Path) -> RunResult:
     group = Group(table, doc["column"], variant, doc.get("paper_column"), doc["title"])
     return RunResult(name=doc["run"], group=group, seed=int(doc["seed"]), updates=int(doc["updates"]),
                      max_updates=int(doc["max_updates"]), best_dev=doc.get("best_dev_exact_match"),
-                     batch_size=_batch_size(path.parent / "config.yaml"), rows=rows,
-                     curve=_curve(path.parent / "metrics.jsonl"), lengths=lengths)
+                     batch_size=_batch_size(path.parent / "config.yaml"), rows=rows, lengths=lengths,
+                     **_metrics(path.parent / "metrics.jsonl"))
 
 
 def _batch_size(config: Path) -> int | None:
@@ -175,18 +177,26 @@ def _length_counts(splits: dict) -> dict[int, tuple[float, int]]:
     return {length: (correct, int(n)) for length, (correct, n) in sorted(counts.items())}
 
 
-def _curve(metrics: Path) -> list[tuple[int, float]]:
-    """Dev exact match per validated update (a resumed run's repeat of an update: the last)."""
+def _metrics(metrics: Path) -> dict:
+    """From a run's metrics.jsonl: `curve`, dev exact match per validated update (a resumed
+    run's repeat of an update: the last), and the seed screen's candidates and kept seed."""
     points: dict[int, float] = {}
+    screen: dict[int, bool] = {}
+    kept = None
     if metrics.is_file():
         for line in metrics.read_text().splitlines():
             try:
                 rec = json.loads(line)
             except ValueError:
                 continue
-            if rec.get("event") == "validation":
+            event = rec.get("event")
+            if event == "validation":
                 points[int(rec["step"])] = float(rec["dev_exact_match"])
-    return sorted(points.items())
+            elif event == "screen":
+                screen[int(rec["seed"])] = bool(rec["passed"])
+            elif event == "screen_end":
+                kept = int(rec["seed"])
+    return {"curve": sorted(points.items()), "screen": list(screen.items()), "kept_seed": kept}
 
 
 # ------------------------------------------------------------------------------ numbers
@@ -304,7 +314,7 @@ def render(runs: list[RunResult], curves_link: str | None, readings: list[tuple[
            "(`gscan-ros experiment` writes them); do not edit by hand. Closed-loop exact match %. "
            "Ours: mean ± sample standard deviation over the seeds (a value without ± is one seed); "
            f"paper: {TABLE1_SOURCE} and {TABLE2_SOURCE} (mean ± std over three runs).", ""]
-    out += _table1(tables) + _table2(tables) + _budget(tables)
+    out += _table1(tables) + _table2(tables) + _budget(tables) + _screens(tables)
     if curves_link:
         out += ["## Learning curves", "", f"![dev exact match vs updates, one panel per column]({curves_link})", ""]
     out += _notes(tables)
@@ -387,6 +397,29 @@ def _budget(t: Tables) -> list[str]:
                    f"{'/'.join(str(b) for b in budgets)} | {_examples_text(g.paper_column or g.column, runs)} | "
                    f"{Cell(best).text() if best else '–'} | {trend_text} |")
     return out + [""]
+
+
+def _screens(t: Tables) -> list[str]:
+    """Per column, how many screened candidate starts were on target after the screen's
+    updates: how reliably the network starts well, which the exact-match tables hide."""
+    rows = []
+    for g in t.groups:
+        runs = [r for r in t.members[g] if r.screen]
+        if not runs:
+            continue
+        passed = sum(ok for r in runs for _, ok in r.screen)
+        tried = sum(len(r.screen) for r in runs)
+        detail = " · ".join(f"s{r.seed}: {r.kept_seed} after {len(r.screen)}" if any(ok for _, ok in r.screen)
+                            else f"s{r.seed}: none of {len(r.screen)}, {r.kept_seed} trained" for r in runs)
+        rows.append(f"| {g.label} | {passed} of {tried} | {detail} |")
+    if not rows:
+        return []
+    return ["## Seed screens", "",
+            "A screened run trains candidate initialisations in turn and keeps the first whose maps "
+            "peak on the target at least half as often as a uniform pick among the objects, else the best "
+            "(`screen_seeds`, docs/results.md \"Seed screening\"). Starts on target per column:", "",
+            "| column | candidates on target | runs (seed: kept seed after how many candidates) |",
+            "|---|---:|---|", *rows, ""]
 
 
 def _examples_text(column: str, runs: list[RunResult]) -> str:

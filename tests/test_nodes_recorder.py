@@ -124,7 +124,9 @@ def test_over_dds_a_reset_service_call_ends_the_recorded_episode_as_aborted(prob
     graphs = probe.node.create_publisher(String, "command_graph", LATCHED_QOS)
     probe.publish_when_matched(graphs, graph_to_msg(get_parser("semantic").parse(EPISODE.command)))
     actions = probe.node.create_publisher(String, "action", EVENT_QOS)
-    probe.spin_until(lambda: actions.get_subscription_count() == 2, what="the world and the recorder")
+    # At least: in the shared domain an earlier test's participant, still being disposed of
+    # on a loaded machine, can count as a third match for a while (it no longer receives).
+    probe.spin_until(lambda: actions.get_subscription_count() >= 2, what="the world and the recorder")
     for replies, action in enumerate((WALK, TURN), start=2):
         actions.publish(action_to_msg(action))
         probe.spin_until(lambda replies=replies: len(observations) == replies, what=f"the reply to {action.token}")

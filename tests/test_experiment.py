@@ -118,6 +118,17 @@ def test_a_live_lock_means_running_and_a_dead_one_is_stale(tmp_path, capsys):
     assert re.search(rf"running\s+semantic_s0 .*pid {os.getpid()}", out) and re.search(r"new\s+state_s0", out)
 
 
+def test_a_start_without_a_checkpoint_is_new_and_says_it_starts_over(tmp_path, capsys):
+    plan = write_plan(tmp_path / "plan.yaml", tmp_path)
+    run = tmp_path / "results/semantic_s0"
+    run.mkdir(parents=True)
+    (run / "metrics.jsonl").write_text(json.dumps({"event": "train", "step": 1, "loss": 1.0}) + "\n")
+    assert experiment(plan, "--dry-run") == 0
+    out = capsys.readouterr().out
+    assert re.search(r"new\s+semantic_s0\s+1/2\s+no last.pt: starts over", out)
+    assert re.search(r"new\s+state_s0\s+0/2\s*$", out, re.M)
+
+
 def test_workers_partition_the_plan_in_seed_rounds(tmp_path, capsys):
     config = str(REPO / "configs/semantic.yaml")
     runs = [{"name": "a", "config": config, "data": "tiny", "seeds": [0, 1, 2]},

@@ -520,6 +520,8 @@ def run_state(run_dir: Path, spec: RunSpec, cfg, plan: Plan, ignore_lock: bool =
         state.status = "evaluate"
     elif (run_dir / "last.pt").exists():
         state.status = "resume"
+    elif state.updates:
+        state.detail = "no last.pt: starts over, replacing these logged updates"
     return state
 
 

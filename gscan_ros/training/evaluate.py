@@ -9,6 +9,7 @@ the world unchanged.
 """
 from __future__ import annotations
 
+import dataclasses
 from collections import defaultdict
 from dataclasses import dataclass, field
 from typing import Sequence
@@ -189,3 +190,66 @@ def _decode_batch(policy: Policy, episodes: Sequence[Episode], max_steps: int, r
             rollout.keep(torch.tensor(keep))
             live = [live[r] for r in keep]
     return preds
+
+
+@dataclass
+class TeacherForced:
+    """How well a model predicts the gold actions when fed the gold prefix.
+
+    An episode is `all_right` when every step's argmax (EOS included) is the gold action:
+    exactly the episodes a greedy closed loop reproduces, so `sequence_accuracy` equals
+    closed-loop exact match (within the step cap). Token accuracy and the gold actions'
+    NLL move before either does, which makes them the learning curve of a split whose
+    exact match is still 0 (split G at small k)."""
+
+    episodes: int
+    steps: int
+    token_accuracy: float  # % of gold steps (EOS included) predicted
+    nll: float  # mean -log p(gold action) per step
+    sequence_accuracy: float  # % of episodes with every step right
+
+    def summary(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+@torch.no_grad()
+def teacher_forced(model: torch.nn.Module, store, ids: Sequence[int] | None = None,
+                   batch_size: int = 256) -> TeacherForced:
+    """`TeacherForced` of `model` (compositional or seq2seq, in eval mode) on episodes
+    `ids` of an `EpisodeStore` (default: all of them)."""
+    from gscan_ros.training.step import teacher_batch
+
+    ids = np.arange(len(store)) if ids is None else np.asarray(ids)
+    was_training = model.training
+    model.eval()
+    right = steps = all_right = 0
+    nll = 0.0
+    try:
+        for start in range(0, len(ids), batch_size):
+            chunk = ids[start : start + batch_size]
+            batch = teacher_batch(model, store, chunk)
+            out = model(batch)
+            gold, row, logits, step_nll = _gold_steps(batch, out)
+            hit = logits.argmax(-1) == gold
+            right += int(hit.sum())
+            steps += int(gold.numel())
+            nll += float(step_nll.sum())
+            misses = torch.zeros(len(chunk), dtype=torch.long).index_add_(0, row.cpu(), (~hit).long().cpu())
+            all_right += int((misses == 0).sum())
+    finally:
+        model.train(was_training)
+    n = len(ids)
+    return TeacherForced(n, steps, 100.0 * right / max(steps, 1), nll / max(steps, 1), 100.0 * all_right / max(n, 1))
+
+
+def _gold_steps(batch, out) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(gold action, batch row, logits, NLL) of every real step of a teacher-forcing batch:
+    the compositional batch packs steps time-major with padding (`valid`), the seq2seq
+    output holds the valid steps of its [rows, T] targets in row-major order."""
+    if hasattr(batch, "valid"):
+        valid = batch.valid.to(out.logits.device)
+        return (batch.targets.to(valid.device)[valid], batch.rows.to(valid.device)[valid], out.logits[valid],
+                out.nll[valid])
+    targets = batch.targets.to(out.logits.device)
+    valid = targets >= 0
+    return targets[valid], valid.nonzero()[:, 0], out.logits, out.nll

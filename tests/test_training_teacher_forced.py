@@ -1,0 +1,89 @@
+"""Teacher-forced metrics: an episode is right under teacher forcing exactly when the greedy
+closed loop reproduces it, so their sequence accuracy and exact match agree."""
+from __future__ import annotations
+
+import dataclasses
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from gscan_ros.data.io import select_test_episodes
+from gscan_ros.errors import InvalidActionError
+from gscan_ros.model.policy import MAX_STEPS, Policy
+from gscan_ros.model.seq2seq import Seq2Seq, Seq2SeqConfig, command_vocabulary
+from gscan_ros.training.batches import EpisodeStore
+from gscan_ros.training.evaluate import evaluate_episodes, teacher_forced
+
+pytestmark = pytest.mark.slow
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def shipped():
+    torch.set_num_threads(1)
+    return Policy.from_checkpoint(None)
+
+
+def replayable(ep) -> bool:
+    try:
+        ep.states()
+    except InvalidActionError:
+        return False
+    return True
+
+
+def test_sequence_accuracy_is_closed_loop_exact_match_on_every_split(shipped, tiny_dataset):
+    episodes = select_test_episodes(tiny_dataset, None, max_examples=40, seed=0)
+    by_split: dict[str, list] = {}
+    for ep in episodes:
+        by_split.setdefault(ep.split, []).append(ep)
+    exact_matches = []
+    for split, eps in by_split.items():
+        closed = evaluate_episodes(shipped, eps).exact_match
+        forced = teacher_forced(shipped.model, EpisodeStore(eps, shipped.parser), batch_size=16)
+        assert forced.sequence_accuracy == pytest.approx(closed), split
+        assert forced.episodes == len(eps) and forced.steps == sum(len(ep.actions) + 1 for ep in eps)
+        assert forced.token_accuracy >= forced.sequence_accuracy
+        exact_matches.append(closed)
+    assert min(exact_matches) < 100.0 < 2 * max(exact_matches), "the check needs hits and misses"
+
+
+@pytest.mark.parametrize("kind", ["compositional", "seq2seq"])
+def test_a_models_own_decoding_is_all_right_under_teacher_forcing(kind, shipped, tiny_dataset):
+    torch.manual_seed(0)
+    policy = shipped if kind == "compositional" else Policy(Seq2Seq(Seq2SeqConfig(), command_vocabulary()), "semantic")
+    episodes = select_test_episodes(tiny_dataset, ["test", "visual"], max_examples=30, seed=1)
+    decoded = evaluate_episodes(policy, episodes).predictions
+    own = [dataclasses.replace(p.episode, actions=tuple(p.actions)) for p in decoded if len(p.actions) <= MAX_STEPS]
+    own = [ep for ep in own if replayable(ep)]
+    assert len(own) >= 10, f"only {len(own)} decodings ended within the cap"
+    forced = teacher_forced(policy.model, EpisodeStore(own, policy.parser), np.arange(len(own)), batch_size=8)
+    assert forced.sequence_accuracy == 100.0 and forced.token_accuracy == 100.0
+    gold = teacher_forced(policy.model, EpisodeStore(episodes, policy.parser))
+    assert gold.nll > forced.nll  # the gold actions are less likely than the model's own, where they differ
+
+
+def test_snapshot_curve_bench_reads_every_snapshot_in_order(tmp_path, tiny_dataset):
+    from model_support import tiny_checkpoint
+
+    run = tmp_path / "run"
+    run.mkdir()
+    for step in (10, 2):
+        tiny_checkpoint(run / f"step_{step}.pt", seed=step, weight_scale=3.0)
+    out = tmp_path / "curve.json"
+    cmd = [sys.executable, str(REPO / "bench/snapshot_curve.py"), str(run), "--data", str(tiny_dataset),
+           "--splits", "test", "--max-examples", "6", "--train-containing", "walk", "--json", str(out)]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    rows = json.loads(out.read_text())["rows"]
+    assert [(Path(r["checkpoint"]).name, r["split"]) for r in rows] == [
+        ("step_2.pt", "test"), ("step_2.pt", "train:walk"), ("step_10.pt", "test"), ("step_10.pt", "train:walk")]
+    assert all(r["exact_match"] == pytest.approx(r["sequence_accuracy"]) for r in rows)
+    assert rows[0]["episodes"] == 6 and rows[1]["episodes"] > 0
+    again = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert again.returncode != 0 and "exists" in again.stderr and "Traceback" not in again.stderr

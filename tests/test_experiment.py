@@ -223,7 +223,7 @@ def test_paper_plan_covers_every_column_with_one_recipe():
     columns = {column for column, _ in seeds}
     assert columns == {"seq2seq", "seq2seq_160k", "state", "attention+state", "constituency", "dependency",
                        "semantic", "semantic_minmax", "semantic_add", "dependency_cosine",
-                       "semantic_faithful"}
+                       "semantic_faithful", "semantic_percommand"}
     assert all(len(s) == 3 for (column, _), s in seeds.items() if column in ("semantic", "semantic_faithful"))
     assert {r.data.k_shot for r in plan.runs if r.data.split_kind == "compositional"} == {1, 5, 11, 51}
     assert plan.runs[0].name == "semantic_s2"  # `first:`: Semantic has three seeds from the start
@@ -233,6 +233,10 @@ def test_paper_plan_covers_every_column_with_one_recipe():
     assert resolve_config(plan, minmax).model["size_map"] == "minmax"
     faithful = resolve_config(plan, next(r for r in plan.runs if r.column == "semantic_faithful"))
     assert (faithful.batch_size, faithful.lr, faithful.lr_decay, faithful.screen_seeds) == (200, 0.001, "none", 0)
+    semantic = resolve_config(plan, next(r for r in plan.runs if r.name == "semantic_s0")).to_dict()
+    for run in (r for r in plan.runs if r.column == "semantic_percommand"):  # the batching alone differs
+        changed = {k for k, v in resolve_config(plan, run).to_dict().items() if semantic[k] != v}
+        assert changed == {"batching"} and resolve_config(plan, run).batching == "per_command"
     cosine = next(r for r in plan.runs if r.column == "dependency_cosine")
     assert resolve_config(plan, cosine).model["overlap"] == "cosine" and resolve_config(plan, cosine).parser == \
         "dependency"

@@ -3,6 +3,7 @@
     .venv/bin/python bench/oversample_probe.py --checkpoint RUN/model.pt --data DIR
         [--word cautiously] [--per-batch 2] [--updates 2000] [--eval-every 500] [--lr 3e-4]
         [--subset 50000] [--split adverb_1] [--max-examples 300] [--seed 0] [--threads 1]
+        [--alone EVERY]
 
 Split G's k-shot runs of the paper plan end at 0 % with their own k "cautiously" training
 examples unfitted (`bench/snapshot_curve.py --train-containing cautiously`). This
@@ -40,8 +41,10 @@ def main() -> None:
     ap.add_argument("--max-examples", type=int, default=300, help="seeded subset of --split and of test")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--alone", type=int, default=0, metavar="EVERY",
+                    help="instead of --per-batch: every EVERY-th update is one rare example alone")
     args = ap.parse_args()
-    if not 0 < args.per_batch < args.batch_size:
+    if args.alone < 0 or not 0 < args.per_batch < args.batch_size:
         sys.exit(f"bench/oversample_probe.py: --per-batch must be in 1..{args.batch_size - 1}")
 
     import torch
@@ -90,8 +93,10 @@ def main() -> None:
     for ep in held_out:
         watch.setdefault(ep.split, []).append(ep)
     watch_stores = {name: EpisodeStore(eps, policy.parser) for name, eps in watch.items()}
-    print(f"{len(rare)} train episodes with {args.word!r}, {len(others)} others; {args.per_batch} of "
-          f"{args.batch_size} per batch; checkpoint at {ckpt.get('step', 0)} updates, lr {args.lr}")
+    mixing = (f"one alone every {args.alone} updates" if args.alone
+              else f"{args.per_batch} of {args.batch_size} per batch")
+    print(f"{len(rare)} train episodes with {args.word!r}, {len(others)} others; {mixing}; "
+          f"checkpoint at {ckpt.get('step', 0)} updates, lr {args.lr}")
     print("| probe updates | episodes | exact % | teacher-forced token acc. % | gold NLL / step |")
     print("|---:|---|---:|---:|---:|")
 
@@ -105,8 +110,13 @@ def main() -> None:
     report(0)
     start = time.time()
     for done in range(1, args.updates + 1):
-        ids = np.concatenate([rng.choice(rare_ids, args.per_batch),
-                              len(rare) + rng.choice(len(others), args.batch_size - args.per_batch, replace=False)])
+        if args.alone and done % args.alone == 0:
+            ids = rare_ids[[(done // args.alone - 1) % len(rare)]]
+        elif args.alone:
+            ids = len(rare) + rng.choice(len(others), args.batch_size, replace=False)
+        else:
+            ids = np.concatenate([rng.choice(rare_ids, args.per_batch),
+                                  len(rare) + rng.choice(len(others), args.batch_size - args.per_batch, replace=False)])
         update(ids)
         if done % args.eval_every == 0 or done == args.updates:
             print(f"({done} updates, {time.time() - start:.0f} s)", file=sys.stderr)

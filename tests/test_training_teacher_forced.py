@@ -87,3 +87,20 @@ def test_snapshot_curve_bench_reads_every_snapshot_in_order(tmp_path, tiny_datas
     assert rows[0]["episodes"] == 6 and rows[1]["episodes"] > 0
     again = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert again.returncode != 0 and "exists" in again.stderr and "Traceback" not in again.stderr
+
+
+@pytest.mark.parametrize("mixing", [[], ["--alone", "2"]])
+def test_oversample_probe_trains_and_reports_every_watched_set(mixing, tmp_path, tiny_dataset):
+    from model_support import tiny_checkpoint
+
+    ckpt = tiny_checkpoint(tmp_path / "tiny.pt")
+    cmd = [sys.executable, str(REPO / "bench/oversample_probe.py"), "--checkpoint", str(ckpt), "--data",
+           str(tiny_dataset), "--word", "cautiously", "--updates", "4", "--eval-every", "2", "--subset", "40",
+           "--batch-size", "8", "--split", "test", "--max-examples", "4", *mixing]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    rows = [line for line in done.stdout.splitlines() if line.startswith("| ") and line[2].isdigit()]
+    assert [row.split(" | ")[0] for row in rows] == ["| 0", "| 0", "| 2", "| 2", "| 4", "| 4"]
+    assert all("train:cautiously" in row for row in rows[::2]) and all("test (4)" in row for row in rows[1::2])
+    bad = subprocess.run(cmd[:-len(mixing) or None] + ["--per-batch", "8"], capture_output=True, text=True)
+    assert bad.returncode != 0 and "--per-batch must be" in bad.stderr and "Traceback" not in bad.stderr

@@ -104,3 +104,44 @@ def test_oversample_probe_trains_and_reports_every_watched_set(mixing, tmp_path,
     assert all("train:cautiously" in row for row in rows[::2]) and all("test (4)" in row for row in rows[1::2])
     bad = subprocess.run(cmd[:-len(mixing) or None] + ["--per-batch", "8"], capture_output=True, text=True)
     assert bad.returncode != 0 and "--per-batch must be" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def _fake_run(run: Path, data: Path, batching: str, batch_size: int, train_examples: int, k: int) -> Path:
+    """A run directory and its snapshot curve as snapshot_curve.py writes them (two snapshots)."""
+    run.mkdir()
+    (run / "config.yaml").write_text(f"batching: {batching}\nbatch_size: {batch_size}\n")
+    (run / "metrics.jsonl").write_text(json.dumps({"event": "start", "step": 0, "train_examples": train_examples}) + "\n")
+    rows = []
+    for updates, acc in ((10, 40.0), (20, 60.0)):
+        for split, episodes in (("adverb_1", 30), ("train:cautiously", k)):
+            rows.append({"updates": updates, "split": split, "episodes": episodes, "token_accuracy": acc,
+                         "nll": 1.0, "sequence_accuracy": 0.0, "exact_match": 0.0})
+    curve = run / "curve.json"
+    curve.write_text(json.dumps({"run": str(run), "data": str(data), "rows": rows}))
+    return curve
+
+
+def test_kshot_exposures_counts_passes_with_the_runs_own_batching(tmp_path, tiny_dataset):
+    from gscan_ros.training.trainer import iter_split
+
+    commands = [ep.command for ep in iter_split(str(tiny_dataset), "train")]
+    per_command = sum(-(-commands.count(c) // 4) for c in set(commands))  # ceil per command
+    assert per_command > -(-len(commands) // 4), "the check needs commands that leave batches part-full"
+    mixed = _fake_run(tmp_path / "mixed", tiny_dataset, "mixed", 4, len(commands), k=5)
+    grouped = _fake_run(tmp_path / "grouped", tiny_dataset, "per_command", 4, len(commands), k=11)
+    png = tmp_path / "exposures.png"
+    cmd = [sys.executable, str(REPO / "bench/kshot_exposures.py"), str(mixed), str(grouped), "--png", str(png)]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    rows = {(r.split(" | ")[0][2:], int(r.split(" | ")[2])): float(r.split(" | ")[4])
+            for r in done.stdout.splitlines() if r.startswith("| ") and r[2] != "-" and r.split(" | ")[1].isdigit()}
+    assert rows[("mixed", 20)] == pytest.approx(5 * 20 / -(-len(commands) // 4), abs=0.5)
+    assert rows[("grouped", 20)] == pytest.approx(11 * 20 / per_command, abs=0.5)
+    assert png.stat().st_size > 0
+    again = subprocess.run(cmd, capture_output=True, text=True)
+    assert again.returncode != 0 and "exists" in again.stderr and "Traceback" not in again.stderr
+    curve = json.loads(mixed.read_text())
+    curve["rows"] = [r for r in curve["rows"] if r["split"] != "train:cautiously"]
+    mixed.write_text(json.dumps(curve))
+    bad = subprocess.run(cmd[:3], capture_output=True, text=True)
+    assert bad.returncode != 0 and "--train-containing cautiously" in bad.stderr and "Traceback" not in bad.stderr

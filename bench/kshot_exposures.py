@@ -6,10 +6,11 @@
 Each CURVE.json is what `bench/snapshot_curve.py RUN --train-containing WORD --json` wrote.
 A snapshot after U updates has shown each train example U / (batches per epoch) times,
 so the word has been seen n_word x U / (batches per epoch) times, where n_word is the
-number of train examples whose command has it (the "train:WORD" row's episodes) and the
-batches per epoch come from the run's own `batch_size` and `batching` through
-`training.batches.batch_order` (one command per batch needs the train commands, read from
-the run's data). If runs with different k line up on this axis, what separates them is
+number of train examples whose command has it (the "train:WORD" row's episodes), times the
+run's `oversample_factor` when it oversamples the word, and the batches per epoch come from
+the run's own `batch_size`, `batching` and oversampling through
+`training.batches.batch_order` (one command per batch and oversampling need the train
+commands, read from the run's data). If runs with different k line up on this axis, what separates them is
 how often the word was seen, not how many distinct examples of it there were.
 `--paper-passes` prints where the paper's budget (150,000 updates of 200 over the
 367,933-episode train split: 81.5 passes) puts each k.
@@ -34,16 +35,18 @@ class _Commands:
         return len(self.commands)
 
 
-def batches_per_epoch(run: Path, data: str) -> tuple[int, int]:
-    """(batches per epoch, train examples) of the run in `run`, from its config and metrics."""
+def batches_per_epoch(run: Path, data: str) -> tuple[int, int, str, int]:
+    """(batches per epoch, train examples, the word it oversamples ('' none) and how often
+    its episodes appear per epoch) of the run in `run`, from its config and metrics."""
     import yaml
 
-    from gscan_ros.training.batches import batch_order
+    from gscan_ros.training.batches import batch_order, word_repeats
 
     cfg = yaml.safe_load((run / "config.yaml").read_text())
     start = next(json.loads(line) for line in (run / "metrics.jsonl").open() if '"event": "start"' in line)
     n = int(start["train_examples"])
-    if cfg.get("batching", "mixed") == "per_command":
+    batching, word, factor = cfg.get("batching", "mixed"), cfg.get("oversample_word", ""), cfg.get("oversample_factor", 1)
+    if batching == "per_command" or word:
         from gscan_ros.training.trainer import iter_split
 
         cap = cfg.get("max_train_target_length") or 0
@@ -53,15 +56,17 @@ def batches_per_epoch(run: Path, data: str) -> tuple[int, int]:
             raise ValueError(f"{data} has {len(commands)} train episodes, the run logged {n}")
     else:
         commands = [""] * n
-    order = batch_order(_Commands(commands), int(cfg["batch_size"]), cfg.get("batching", "mixed"),
-                        np.random.default_rng(0))
-    return len(order), n
+    order = batch_order(_Commands(commands), int(cfg["batch_size"]), batching, np.random.default_rng(0),
+                        word_repeats(commands, word, factor))
+    return len(order), n, word, factor
 
 
 def curve_rows(curve: dict, word: str, split: str) -> list[dict]:
     """Per snapshot: updates, exposures of the word, and the split's and the word's own rows."""
     run = Path(curve["run"])
-    per_epoch, n = batches_per_epoch(run, curve["data"])
+    per_epoch, n, oversampled, factor = batches_per_epoch(run, curve["data"])
+    if oversampled != word:
+        factor = 1
     by_update: dict[int, dict] = {}
     for row in curve["rows"]:
         by_update.setdefault(row["updates"], {})[row["split"]] = row
@@ -72,7 +77,7 @@ def curve_rows(curve: dict, word: str, split: str) -> list[dict]:
             raise ValueError(f"{run}: no 'train:{word}' or '{split}' row at {updates} updates "
                              f"(run snapshot_curve.py with --train-containing {word})")
         rows.append({"run": run.name, "k": own["episodes"], "updates": updates, "passes": updates / per_epoch,
-                     "exposures": own["episodes"] * updates / per_epoch, "batches_per_epoch": per_epoch,
+                     "exposures": own["episodes"] * factor * updates / per_epoch, "batches_per_epoch": per_epoch,
                      "train_examples": n, "target": target, "own": own})
     return rows
 

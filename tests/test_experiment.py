@@ -223,7 +223,7 @@ def test_paper_plan_covers_every_column_with_one_recipe():
     columns = {column for column, _ in seeds}
     assert columns == {"seq2seq", "seq2seq_160k", "state", "attention+state", "constituency", "dependency",
                        "semantic", "semantic_minmax", "semantic_add", "dependency_cosine",
-                       "semantic_faithful", "semantic_percommand"}
+                       "semantic_faithful", "semantic_percommand", "semantic_oversample"}
     assert all(len(s) == 3 for (column, _), s in seeds.items() if column in ("semantic", "semantic_faithful"))
     assert {r.data.k_shot for r in plan.runs if r.data.split_kind == "compositional"} == {1, 5, 11, 51}
     assert plan.runs[0].name == "semantic_s2"  # `first:`: Semantic has three seeds from the start
@@ -237,6 +237,9 @@ def test_paper_plan_covers_every_column_with_one_recipe():
     for run in (r for r in plan.runs if r.column == "semantic_percommand"):  # the batching alone differs
         changed = {k for k, v in resolve_config(plan, run).to_dict().items() if semantic[k] != v}
         assert changed == {"batching"} and resolve_config(plan, run).batching == "per_command"
+    oversample = next(r for r in plan.runs if r.column == "semantic_oversample")  # its sampling alone differs
+    changed = {k for k, v in resolve_config(plan, oversample).to_dict().items() if semantic[k] != v}
+    assert changed == {"oversample_word", "oversample_factor"} and oversample.data.k_shot == 11
     cosine = next(r for r in plan.runs if r.column == "dependency_cosine")
     assert resolve_config(plan, cosine).model["overlap"] == "cosine" and resolve_config(plan, cosine).parser == \
         "dependency"

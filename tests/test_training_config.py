@@ -23,6 +23,7 @@ def test_yaml_and_overrides(tmp_path):
     (["model.message=telepathy"], "message"),
     (["batch_size"], "key=value"),
     (["batch_size=abc"], "batch_size"),
+    (["batch_size=2.5"], "batch_size"),
 ])
 def test_bad_settings_are_named(overrides, message):
     with pytest.raises(ConfigError, match=message):

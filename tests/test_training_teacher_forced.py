@@ -106,14 +106,15 @@ def test_oversample_probe_trains_and_reports_every_watched_set(mixing, tmp_path,
     assert bad.returncode != 0 and "--per-batch must be" in bad.stderr and "Traceback" not in bad.stderr
 
 
-def _fake_run(run: Path, data: Path, batching: str, batch_size: int, train_examples: int, k: int) -> Path:
+def _fake_run(run: Path, data: Path, batching: str, batch_size: int, train_examples: int, k: int,
+              oversample: str = "", word: str = "cautiously") -> Path:
     """A run directory and its snapshot curve as snapshot_curve.py writes them (two snapshots)."""
     run.mkdir()
-    (run / "config.yaml").write_text(f"batching: {batching}\nbatch_size: {batch_size}\n")
+    (run / "config.yaml").write_text(f"batching: {batching}\nbatch_size: {batch_size}\n{oversample}")
     (run / "metrics.jsonl").write_text(json.dumps({"event": "start", "step": 0, "train_examples": train_examples}) + "\n")
     rows = []
     for updates, acc in ((10, 40.0), (20, 60.0)):
-        for split, episodes in (("adverb_1", 30), ("train:cautiously", k)):
+        for split, episodes in (("adverb_1", 30), (f"train:{word}", k)):
             rows.append({"updates": updates, "split": split, "episodes": episodes, "token_accuracy": acc,
                          "nll": 1.0, "sequence_accuracy": 0.0, "exact_match": 0.0})
     curve = run / "curve.json"
@@ -129,6 +130,9 @@ def test_kshot_exposures_counts_passes_with_the_runs_own_batching(tmp_path, tiny
     assert per_command > -(-len(commands) // 4), "the check needs commands that leave batches part-full"
     mixed = _fake_run(tmp_path / "mixed", tiny_dataset, "mixed", 4, len(commands), k=5)
     grouped = _fake_run(tmp_path / "grouped", tiny_dataset, "per_command", 4, len(commands), k=11)
+    walks = sum("walk" in c.split() for c in commands)
+    oversampled = _fake_run(tmp_path / "oversampled", tiny_dataset, "mixed", 4, len(commands), k=walks,
+                            oversample="oversample_word: walk\noversample_factor: 3\n", word="walk")
     png = tmp_path / "exposures.png"
     cmd = [sys.executable, str(REPO / "bench/kshot_exposures.py"), str(mixed), str(grouped), "--png", str(png)]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
@@ -138,6 +142,11 @@ def test_kshot_exposures_counts_passes_with_the_runs_own_batching(tmp_path, tiny
     assert rows[("mixed", 20)] == pytest.approx(5 * 20 / -(-len(commands) // 4), abs=0.5)
     assert rows[("grouped", 20)] == pytest.approx(11 * 20 / per_command, abs=0.5)
     assert png.stat().st_size > 0
+    walked = subprocess.run([*cmd[:2], str(oversampled), "--word", "walk"], capture_output=True, text=True)
+    assert walked.returncode == 0, walked.stderr
+    row = next(r for r in walked.stdout.splitlines() if r.startswith("| oversampled | ") and " | 20 | " in r)
+    epoch = -(-(len(commands) + 2 * walks) // 4)  # the walk episodes three times each
+    assert float(row.split(" | ")[4]) == pytest.approx(3 * walks * 20 / epoch, abs=0.5)
     again = subprocess.run(cmd, capture_output=True, text=True)
     assert again.returncode != 0 and "exists" in again.stderr and "Traceback" not in again.stderr
     curve = json.loads(mixed.read_text())

@@ -148,21 +148,34 @@ class EpisodeStore:
         )
 
 
-def batch_order(store: EpisodeStore, batch_size: int, batching: str, rng: np.random.Generator) -> list[np.ndarray]:
-    """One epoch of batches.
+def word_repeats(commands: Sequence[str], word: str, factor: int) -> np.ndarray | None:
+    """How many times each episode appears per epoch when the episodes whose command has
+    `word` are oversampled `factor` times (TrainConfig.oversample_word); None: once each."""
+    if not word or factor == 1:
+        return None
+    has = np.fromiter((word in command.split() for command in commands), dtype=bool, count=len(commands))
+    if not has.any():
+        raise ValueError(f"no train command has {word!r} to oversample")
+    return np.where(has, factor, 1)
+
+
+def batch_order(store: Sized, batch_size: int, batching: str, rng: np.random.Generator,
+                repeats: np.ndarray | None = None) -> list[np.ndarray]:
+    """One epoch of batches (`repeats`: each episode's appearances per epoch, `word_repeats`).
 
     mixed: a random permutation cut into batches (graphs of any commands mixed).
     per_command: the original scheme (CG; quirk Q9, docs/model.md) — batches hold one command,
     each command's episodes reshuffled every epoch (the original fixed chunk contents
     after one initial shuffle), then the order of all chunks shuffled.
     """
+    ids = np.arange(len(store)) if repeats is None else np.repeat(np.arange(len(store)), repeats)
     if batching == "mixed":
-        perm = rng.permutation(len(store))
+        perm = rng.permutation(ids)
         return [perm[i : i + batch_size] for i in range(0, len(perm), batch_size)]
     if batching == "per_command":
         by_command: dict[str, list[int]] = {}
-        for i, command in enumerate(store.commands):
-            by_command.setdefault(command, []).append(i)
+        for i in ids:
+            by_command.setdefault(store.commands[i], []).append(int(i))
         chunks = []
         for command in sorted(by_command):
             idx = rng.permutation(np.asarray(by_command[command]))
@@ -180,10 +193,10 @@ class EpochCursor:
 
 
 def iterate_batches(store: EpisodeStore, batch_size: int, batching: str, seed: int,
-                    cursor: EpochCursor) -> Iterator[tuple[EpochCursor, np.ndarray]]:
+                    cursor: EpochCursor, repeats: np.ndarray | None = None) -> Iterator[tuple[EpochCursor, np.ndarray]]:
     """Endless batches; epoch e uses rng(seed, e), so resuming at `cursor` replays nothing."""
     while True:
-        order = batch_order(store, batch_size, batching, np.random.default_rng([seed, cursor.epoch]))
+        order = batch_order(store, batch_size, batching, np.random.default_rng([seed, cursor.epoch]), repeats)
         while cursor.batch < len(order):
             ids = order[cursor.batch]
             cursor = EpochCursor(cursor.epoch, cursor.batch + 1)

@@ -51,6 +51,12 @@ class TrainConfig:
     batching: str = "mixed"
     """'mixed': batches mix commands (one pass over many graphs); 'per_command': the
     original one-command-per-batch scheme (quirk Q9, docs/model.md)."""
+    oversample_word: str = ""
+    """Train episodes whose command has this word appear `oversample_factor` times per
+    epoch (an ablation for split G: k "cautiously" examples shown as often as k x factor
+    would be, results/paper/reading.md); '' = every episode once (the original)."""
+    oversample_factor: int = 1
+    """Appearances per epoch of the `oversample_word` episodes."""
     batch_size: int = 200
     """Episodes per update."""
     lr: float = 1e-3
@@ -136,6 +142,12 @@ class TrainConfig:
             raise ConfigError(f"min_lr_ratio must be in [0, 1], got {self.min_lr_ratio!r}")
         if self.target_dev_exact_match > 100:
             raise ConfigError(f"target_dev_exact_match is a percentage (0-100), got {self.target_dev_exact_match!r}")
+        if isinstance(self.oversample_factor, bool) or not isinstance(self.oversample_factor, int) \
+                or self.oversample_factor < 1:
+            raise ConfigError(f"oversample_factor must be an integer >= 1, got {self.oversample_factor!r}")
+        if not isinstance(self.oversample_word, str) or (self.oversample_factor > 1) != bool(self.oversample_word):
+            raise ConfigError("oversample_word and oversample_factor > 1 go together "
+                              f"(got {self.oversample_word!r} and {self.oversample_factor!r})")
         if int(self.snapshot_every) < 0:
             raise ConfigError(f"snapshot_every must be >= 0, got {self.snapshot_every!r}")
         if not isinstance(self.model, dict):
@@ -191,6 +203,8 @@ class TrainConfig:
         values = {}
         for key, value in d.items():
             kind = {"int": int, "float": float, "str": str, "dict": dict}[types[key]]
+            if kind is int and (isinstance(value, bool) or (isinstance(value, float) and not value.is_integer())):
+                raise ConfigError(f"config key {key!r} expects an integer, got {value!r}")  # int() would truncate
             try:
                 values[key] = kind(value) if kind is not dict else dict(value or {})
             except (TypeError, ValueError):

@@ -30,7 +30,7 @@ from gscan_ros.model.modules import ModuleTable
 from gscan_ros.model.policy import Policy
 from gscan_ros.model.runtime import configure_torch
 from gscan_ros.training import distributed
-from gscan_ros.training.batches import EpisodeStore, EpochCursor, iterate_batches
+from gscan_ros.training.batches import EpisodeStore, EpochCursor, iterate_batches, word_repeats
 from gscan_ros.training.config import ConfigError, TrainConfig
 from gscan_ros.training.evaluate import evaluate_episodes, exact_match_by_group
 from gscan_ros.training.explain import step0_readings, summarize
@@ -261,6 +261,10 @@ class Run:
         self.store = load_train_store(data, cfg, parser, progress=self.progress)
         if not len(self.store):
             raise DatasetFormatError(f"dataset {data!r} has no {cfg.train_split!r} episodes")
+        try:
+            self.repeats = word_repeats(self.store.commands, cfg.oversample_word, cfg.oversample_factor)
+        except ValueError as exc:
+            raise ConfigError(f"oversample_word: {exc} in {data!r}") from None
         self.dev_eps = load_dev(data, cfg) if ranks.is_main else []
         self.parser = parser
         if cfg.screen_seeds > 1 and ranks.distributed:
@@ -332,7 +336,7 @@ class Run:
             self.checkpoint(self.files.last, self.last_metrics, training_state=True)  # screening is not redone
         window = _LossWindow()
         bar = tqdm(total=cfg.max_updates, initial=self.step, desc="training", unit="upd", disable=not self.progress)
-        batches = iterate_batches(self.store, cfg.batch_size, cfg.batching, self.seed, self.cursor)
+        batches = iterate_batches(self.store, cfg.batch_size, cfg.batching, self.seed, self.cursor, self.repeats)
         budget_s = cfg.max_minutes * 60.0
         while self.step < cfg.max_updates:
             cursor, ids = next(batches)
@@ -388,7 +392,7 @@ class Run:
                 seed_everything(seed)
                 self.fresh_start(seed)
                 self.make_step()
-            batches = iterate_batches(self.store, cfg.batch_size, cfg.batching, seed, self.cursor)
+            batches = iterate_batches(self.store, cfg.batch_size, cfg.batching, seed, self.cursor, self.repeats)
             for _ in tqdm(range(cfg.screen_updates), desc=f"screen {k + 1}/{cfg.screen_seeds} (seed {seed})",
                           unit="upd", disable=not self.progress):
                 self.cursor, ids = next(batches)

@@ -45,7 +45,8 @@ def batches_per_epoch(run: Path, data: str) -> tuple[int, int, str, int]:
     cfg = yaml.safe_load((run / "config.yaml").read_text())
     start = next(json.loads(line) for line in (run / "metrics.jsonl").open() if '"event": "start"' in line)
     n = int(start["train_examples"])
-    batching, word, factor = cfg.get("batching", "mixed"), cfg.get("oversample_word", ""), cfg.get("oversample_factor", 1)
+    batching = cfg.get("batching", "mixed")
+    word, factor = cfg.get("oversample_word", ""), cfg.get("oversample_factor", 1)
     if batching == "per_command" or word:
         from gscan_ros.training.trainer import iter_split
 

@@ -111,7 +111,8 @@ def _fake_run(run: Path, data: Path, batching: str, batch_size: int, train_examp
     """A run directory and its snapshot curve as snapshot_curve.py writes them (two snapshots)."""
     run.mkdir()
     (run / "config.yaml").write_text(f"batching: {batching}\nbatch_size: {batch_size}\n{oversample}")
-    (run / "metrics.jsonl").write_text(json.dumps({"event": "start", "step": 0, "train_examples": train_examples}) + "\n")
+    start = {"event": "start", "step": 0, "train_examples": train_examples}
+    (run / "metrics.jsonl").write_text(json.dumps(start) + "\n")
     rows = []
     for updates, acc in ((10, 40.0), (20, 60.0)):
         for split, episodes in (("adverb_1", 30), (f"train:{word}", k)):

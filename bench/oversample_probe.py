@@ -54,7 +54,7 @@ def main() -> None:
     from gscan_ros.model.checkpoint import read_checkpoint
     from gscan_ros.model.policy import Policy
     from gscan_ros.model.runtime import configure_torch
-    from gscan_ros.training.batches import EpisodeStore
+    from gscan_ros.training.batches import EpisodeStore, has_word
     from gscan_ros.training.evaluate import evaluate_episodes, teacher_forced
     from gscan_ros.training.step import TrainStep
     from gscan_ros.training.trainer import iter_split
@@ -67,7 +67,7 @@ def main() -> None:
         policy = Policy.from_checkpoint(args.checkpoint)
         rare, others, seen = [], [], 0
         for ep in iter_split(args.data, "train"):  # the others: a seeded reservoir sample, one pass
-            if args.word in ep.command.split():
+            if has_word(ep.command, args.word):
                 rare.append(ep)
                 continue
             if seen < args.subset:

@@ -49,7 +49,7 @@ def main() -> None:
     from gscan_ros.errors import GscanError
     from gscan_ros.model.policy import Policy
     from gscan_ros.model.runtime import configure_torch
-    from gscan_ros.training.batches import EpisodeStore
+    from gscan_ros.training.batches import EpisodeStore, has_word
     from gscan_ros.training.evaluate import evaluate_episodes, teacher_forced
     from gscan_ros.training.trainer import iter_split
 
@@ -63,7 +63,7 @@ def main() -> None:
         for ep in select_test_episodes(args.data, args.splits, args.max_examples, args.seed):
             by_split.setdefault(ep.split, []).append(ep)
         for word in args.train_containing:
-            by_split[f"train:{word}"] = [ep for ep in iter_split(args.data, "train") if word in ep.command.split()]
+            by_split[f"train:{word}"] = [ep for ep in iter_split(args.data, "train") if has_word(ep.command, word)]
             if not by_split[f"train:{word}"]:
                 raise GscanError(f"no train command of {args.data} has {word!r}")
     except (GscanError, OSError) as err:

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from gscan_ros.cli import main
-from gscan_ros.training.batches import batch_order, word_repeats
+from gscan_ros.training.batches import batch_order, has_word, word_repeats
 from gscan_ros.training.config import ConfigError, TrainConfig
 
 
@@ -41,6 +41,11 @@ def test_no_oversampling_is_the_epoch_as_before(batching):
     assert [b.tolist() for b in order] == [b.tolist() for b in ones]
     if batching == "mixed":  # runs trained before the option keep their batches
         assert np.concatenate(order).tolist() == np.random.default_rng(5).permutation(len(STORE)).tolist()
+
+
+def test_a_word_is_a_whole_word_of_the_command():
+    assert has_word("walk to a circle cautiously", "cautiously")
+    assert not has_word("walk to a circle cautiously", "cautious") and not has_word("walking", "walk")
 
 
 def test_a_word_no_command_has_is_named():

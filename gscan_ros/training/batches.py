@@ -148,12 +148,17 @@ class EpisodeStore:
         )
 
 
+def has_word(command: str, word: str) -> bool:
+    """Whether `word` is one of the command's words (not a substring: "walk" is not in "walking")."""
+    return word in command.split()
+
+
 def word_repeats(commands: Sequence[str], word: str, factor: int) -> np.ndarray | None:
     """How many times each episode appears per epoch when the episodes whose command has
     `word` are oversampled `factor` times (TrainConfig.oversample_word); None: once each."""
     if not word or factor == 1:
         return None
-    has = np.fromiter((word in command.split() for command in commands), dtype=bool, count=len(commands))
+    has = np.fromiter((has_word(command, word) for command in commands), dtype=bool, count=len(commands))
     if not has.any():
         raise ValueError(f"no train command has {word!r} to oversample")
     return np.where(has, factor, 1)

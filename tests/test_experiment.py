@@ -226,9 +226,11 @@ def test_paper_plan_covers_every_column_with_one_recipe():
                        "semantic_faithful", "semantic_percommand", "semantic_oversample"}
     assert all(len(s) == 3 for (column, _), s in seeds.items() if column in ("semantic", "semantic_faithful"))
     assert {r.data.k_shot for r in plan.runs if r.data.split_kind == "compositional"} == {1, 5, 11, 51}
-    assert plan.runs[0].name == "semantic_s2"  # `first:`: Semantic has three seeds from the start
-    first_round = plan.runs[1:len(seeds) + 1]  # then every column's first seed
-    assert {r.entry for r in first_round} == {entry for _, entry in seeds}
+    first = ["semantic_s2", "semantic_len13_s0", "semantic_faithful_s0", "semantic_faithful_s1", "semantic_faithful_s2"]
+    assert [r.name for r in plan.runs[:len(first)]] == first  # `first:` (Semantic's third seed, then issue #12's)
+    order = {entry: sorted(s) for (_, entry), s in seeds.items()}
+    rounds = [order[r.entry].index(r.seed) for r in plan.runs[len(first):]]
+    assert rounds == sorted(rounds)  # then seed rounds: every column's first seed before any second seed
     minmax = next(r for r in plan.runs if r.column == "semantic_minmax")
     assert resolve_config(plan, minmax).model["size_map"] == "minmax"
     faithful = resolve_config(plan, next(r for r in plan.runs if r.column == "semantic_faithful"))

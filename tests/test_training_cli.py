@@ -49,6 +49,12 @@ def test_train_resume_evaluate(dataset, tmp_path, kind):
         assert preds[0]["attention_weights"] and all(len(m) == 36 for maps in preds[0]["attention_weights"].values()
                                                      for m in maps)
     assert (out / "results.md").read_text().count("|") > 10
+    for split, summary in results["splits"].items():  # every failed episode has one kind, in the file too
+        failed = [p for p in preds if p["split"] == split and not p["exact_match"]]
+        assert sum(summary["failures"].values()) == len(failed)
+        assert all(p["failure"] in summary["failures"] for p in failed)
+    assert all(p["failure"] is None for p in preds if p["exact_match"])
+    assert "target not reached" in (out / "results.md").read_text()
 
 
 def test_resume_with_another_parser_is_refused(dataset, tmp_path, capsys):

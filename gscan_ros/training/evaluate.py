@@ -51,6 +51,42 @@ class Prediction:
         return list(self.actions) == list(self.episode.actions)
 
 
+# Where a failed episode went wrong, judged by replaying both action sequences in the world:
+FAILURE_KINDS = (
+    "no_stop",           # never emitted EOS: ran to the decoding cap
+    "target_not_reached",  # the agent never stood on the target object's cell
+    "wrong_end_state",   # reached the target, but the agent or an object ended elsewhere
+    "right_end_state",   # the gold end state (agent cell, every object's cell), other actions: manner or path
+)
+
+
+def failure_kind(prediction: Prediction, max_steps: int = MAX_STEPS) -> str | None:
+    """The `FAILURE_KINDS` entry of a failed prediction (None for an exact match). The
+    end state ignores the agent's heading; an action the world rejects leaves it as it was."""
+    if prediction.exact_match:
+        return None
+    if len(prediction.actions) > max_steps:
+        return "no_stop"
+    gold = _replay(prediction.episode, prediction.episode.actions)
+    ours = _replay(prediction.episode, prediction.actions)
+    if (ours[0], ours[1]) == (gold[0], gold[1]):
+        return "right_end_state"
+    return "wrong_end_state" if ours[2] else "target_not_reached"
+
+
+def _replay(episode: Episode, actions: Sequence[Action]) -> tuple:
+    """(agent cell, object cells, whether the agent stood on the target's cell) after `actions`."""
+    world = World(episode.situation)
+    on_target = world.target is not None and world.agent_position == world.target.position
+    for action in actions:
+        try:
+            world.step(action)
+        except InvalidActionError:
+            pass
+        on_target = on_target or (world.target is not None and world.agent_position == world.target.position)
+    return world.agent_position, tuple(o.position for o in world.objects), on_target
+
+
 @dataclass
 class EvalResult:
     predictions: list[Prediction] = field(default_factory=list)
@@ -75,6 +111,7 @@ class EvalResult:
                     str(n): {"examples": len(ps), "exact_match": _pct(p.exact_match for p in ps)}
                     for n, ps in sorted(by_len.items())
                 },
+                "failures": failure_counts(preds),
             }
         return out
 
@@ -85,6 +122,12 @@ class EvalResult:
     @property
     def token_accuracy(self) -> float:
         return float(np.mean([p.token_accuracy for p in self.predictions])) if self.predictions else 0.0
+
+
+def failure_counts(predictions: Sequence[Prediction]) -> dict[str, int]:
+    """How many of `predictions` failed in each of the `FAILURE_KINDS`."""
+    kinds = [failure_kind(p) for p in predictions]
+    return {kind: kinds.count(kind) for kind in FAILURE_KINDS}
 
 
 def command_groups(episode: Episode) -> dict[str, str]:

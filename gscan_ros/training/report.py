@@ -4,16 +4,21 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from gscan_ros.training.evaluate import EvalResult
+from gscan_ros.training.evaluate import FAILURE_KINDS, EvalResult, failure_kind
 
 
 def markdown_table(summary: dict, title: str = "") -> str:
-    """One row per split (letter, key, examples, exact match %, token accuracy %)."""
+    """One row per split (letter, key, examples, exact match %, token accuracy %, and the
+    failed episodes of each `FAILURE_KINDS` entry)."""
     lines = [f"## {title}", ""] if title else []
-    lines += ["| split | key | examples | exact match % | token accuracy % |", "|---|---|---:|---:|---:|"]
+    kinds = [k.replace("_", " ") for k in FAILURE_KINDS]
+    lines += [f"| split | key | examples | exact match % | token accuracy % | {' | '.join(kinds)} |",
+              "|---|---|---:|---:|---:|" + "---:|" * len(kinds)]
     for split, s in summary.items():
+        failures = s.get("failures", {})
+        counts = " | ".join(str(failures.get(k, "-")) for k in FAILURE_KINDS)
         lines.append(f"| {s['letter'] or '-'} | {split} | {s['examples']} | {s['exact_match']:.2f} "
-                     f"| {s['token_accuracy']:.2f} |")
+                     f"| {s['token_accuracy']:.2f} | {counts} |")
     return "\n".join(lines) + "\n"
 
 
@@ -33,6 +38,7 @@ def prediction_records(result: EvalResult):
                                   for w, maps in (p.attention or {}).items()},
             "accuracy": p.token_accuracy,
             "exact_match": p.exact_match,
+            "failure": failure_kind(p),
             "split": ep.split,
             "example_id": ep.example_id,
         }

@@ -1,0 +1,39 @@
+"""Failure kinds: a failed episode classified by replaying both action sequences."""
+from gscan_ros.data.episode import Episode
+from gscan_ros.training.evaluate import FAILURE_KINDS, EvalResult, Prediction, failure_kind
+from gscan_ros.world import Action, Heading, Position, Situation, WorldObject, demonstrate
+
+L, R, W = Action.TURN_LEFT, Action.TURN_RIGHT, Action.WALK
+CIRCLE = WorldObject("circle", "red", 1, Position(1, 1))
+SQUARE = WorldObject("square", "blue", 2, Position(3, 5))
+SITUATION = Situation(Position(3, 3), Heading.EAST, (CIRCLE, SQUARE), CIRCLE)
+
+
+def predicted(command: str, actions: list[Action]) -> Prediction:
+    episode = Episode(command, SITUATION, tuple(demonstrate(SITUATION, command)), split="test")
+    return Prediction(episode, list(actions))
+
+
+def test_each_kind_of_failure():
+    gold = demonstrate(SITUATION, "walk to a circle")
+    assert gold == [L, L, W, W, R, W, W]  # west along the row, then north
+    assert failure_kind(predicted("walk to a circle", gold)) is None
+    assert failure_kind(predicted("walk to a circle", [L, W, W, L, W, W])) == "right_end_state"  # north first
+    assert failure_kind(predicted("walk to a circle", gold + [W])) == "wrong_end_state"  # walked on past it
+    assert failure_kind(predicted("walk to a circle", [W, W])) == "target_not_reached"  # to the square
+    assert failure_kind(predicted("walk to a circle", gold + [Action.STAY] * 120)) == "no_stop"
+    assert failure_kind(predicted("walk to a circle", gold + [Action.STAY] * 120), max_steps=200) == "right_end_state"
+
+
+def test_an_object_left_elsewhere_is_a_wrong_end_state():
+    gold = demonstrate(SITUATION, "push a circle")
+    assert gold[-1] is Action.PUSH
+    assert failure_kind(predicted("push a circle", gold[:-1])) == "wrong_end_state"  # one push short
+    assert failure_kind(predicted("push a circle", gold[:-1] + [Action.STAY, Action.PUSH])) == "right_end_state"
+
+
+def test_summary_counts_failures_per_split():
+    preds = [predicted("walk to a circle", a) for a in ([L, L, W, W, R, W, W], [W, W], [W, W, W], [L, W, W, L, W, W])]
+    failures = EvalResult(preds).summary()["test"]["failures"]
+    assert list(failures) == list(FAILURE_KINDS)
+    assert failures == {"no_stop": 0, "target_not_reached": 2, "wrong_end_state": 0, "right_end_state": 1}

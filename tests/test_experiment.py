@@ -14,6 +14,7 @@ import yaml
 from gscan_ros.cli import main
 from gscan_ros.cli.args import available_cpus
 from gscan_ros.training.experiment import RunState, load_plan, resolve_config, work_order
+from gscan_ros.training.failures import FAILURE_KINDS
 from gscan_ros.training.paper_figures import TABLE1, TABLE2
 
 REPO = Path(__file__).resolve().parents[1]
@@ -341,6 +342,25 @@ def test_report_counts_each_columns_screened_starts_on_target(tmp_path):
     screens = out.read_text().split("## Seed screens")[1].split("##")[0]
     assert [line for line in screens.splitlines() if line.startswith("| ") and "---" not in line][1:] == [
         "| Semantic | 1 of 5 | s0: 2000 after 3 · s1: none of 2, 1001 trained |"]
+
+
+def test_report_pools_each_columns_failure_kinds(tmp_path):
+    def failing(letter, episodes, kinds):
+        return {**split(letter, 50.0), "examples": episodes, "failures": dict(zip(FAILURE_KINDS, kinds))}
+
+    fake_run(tmp_path / "r", "semantic_s0", "semantic", 0, {"test": failing("A", 10, (1, 2, 0, 0)),
+                                                           "adverb_2": failing("H", 10, (0, 0, 8, 0))})
+    fake_run(tmp_path / "r", "semantic_s1", "semantic", 1, {"test": failing("A", 30, (0, 1, 0, 3))})
+    fake_run(tmp_path / "r", "state_s0", "state", 0, {"test": split("A", 50.0)})  # evaluated before: no row
+    out = tmp_path / "tables.md"
+    assert report([tmp_path / "r"], out, "--no-curves") == 0
+    section = out.read_text().split("## Where the failures go")[1].split("##")[0]
+    assert [line for line in section.splitlines() if line.startswith("| ") and "---" not in line][1:] == [
+        "| Semantic | A | 40 | 2.5 | 7.5 | 0.0 | 7.5 |", "| Semantic | H | 10 | 0.0 | 0.0 | 80.0 | 0.0 |"]
+    fake_free = tmp_path / "none"
+    fake_run(fake_free, "state_s0", "state", 0, {"test": split("A", 50.0)})
+    assert report([fake_free], tmp_path / "none.md", "--no-curves") == 0
+    assert "Where the failures go" not in (tmp_path / "none.md").read_text()
 
 
 def test_report_is_byte_identical_and_refuses_to_overwrite(results, tmp_path, capsys):

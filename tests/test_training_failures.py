@@ -1,6 +1,7 @@
 """Failure kinds: a failed episode classified by replaying both action sequences."""
 from gscan_ros.data.episode import Episode
-from gscan_ros.training.evaluate import FAILURE_KINDS, EvalResult, Prediction, failure_kind
+from gscan_ros.training.evaluate import EvalResult, Prediction, failure_kind
+from gscan_ros.training.failures import FAILURE_KINDS
 from gscan_ros.world import Action, Heading, Position, Situation, WorldObject, demonstrate
 
 L, R, W = Action.TURN_LEFT, Action.TURN_RIGHT, Action.WALK

@@ -23,6 +23,7 @@ from gscan_ros.data.splits import SPLIT_LETTERS
 from gscan_ros.errors import GscanError, InvalidActionError
 from gscan_ros.model.policy import MAX_STEPS, Policy
 from gscan_ros.training.distributed import Ranks, shard_of
+from gscan_ros.training.failures import FAILURE_KINDS, classify_failure
 from gscan_ros.world.types import ADVERBS, COLORS, SIZE_ADJECTIVES, TRANSITIVE_VERBS, Action
 from gscan_ros.world.world import World
 
@@ -51,40 +52,9 @@ class Prediction:
         return list(self.actions) == list(self.episode.actions)
 
 
-# Where a failed episode went wrong, judged by replaying both action sequences in the world:
-FAILURE_KINDS = (
-    "no_stop",           # never emitted EOS: ran to the decoding cap
-    "target_not_reached",  # the agent never stood on the target object's cell
-    "wrong_end_state",   # reached the target, but the agent or an object ended elsewhere
-    "right_end_state",   # the gold end state (agent cell, every object's cell), other actions: manner or path
-)
-
-
 def failure_kind(prediction: Prediction, max_steps: int = MAX_STEPS) -> str | None:
-    """The `FAILURE_KINDS` entry of a failed prediction (None for an exact match). The
-    end state ignores the agent's heading; an action the world rejects leaves it as it was."""
-    if prediction.exact_match:
-        return None
-    if len(prediction.actions) > max_steps:
-        return "no_stop"
-    gold = _replay(prediction.episode, prediction.episode.actions)
-    ours = _replay(prediction.episode, prediction.actions)
-    if (ours[0], ours[1]) == (gold[0], gold[1]):
-        return "right_end_state"
-    return "wrong_end_state" if ours[2] else "target_not_reached"
-
-
-def _replay(episode: Episode, actions: Sequence[Action]) -> tuple:
-    """(agent cell, object cells, whether the agent stood on the target's cell) after `actions`."""
-    world = World(episode.situation)
-    on_target = world.target is not None and world.agent_position == world.target.position
-    for action in actions:
-        try:
-            world.step(action)
-        except InvalidActionError:
-            pass
-        on_target = on_target or (world.target is not None and world.agent_position == world.target.position)
-    return world.agent_position, tuple(o.position for o in world.objects), on_target
+    """The `FAILURE_KINDS` entry of a failed prediction (None for an exact match)."""
+    return classify_failure(prediction.episode, prediction.actions, max_steps)
 
 
 @dataclass

@@ -4,7 +4,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from gscan_ros.training.evaluate import FAILURE_KINDS, EvalResult, failure_kind
+from gscan_ros.training.evaluate import EvalResult, failure_kind
+from gscan_ros.training.failures import FAILURE_KINDS
 
 
 def markdown_table(summary: dict, title: str = "") -> str:

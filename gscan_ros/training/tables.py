@@ -24,6 +24,7 @@ from pathlib import Path
 
 from gscan_ros.errors import GscanError
 from gscan_ros.training.config import read_yaml
+from gscan_ros.training.failures import FAILURE_KINDS
 from gscan_ros.training.paper_figures import (
     COLUMN_TITLES,
     K_SHOT_LABELS,
@@ -84,6 +85,9 @@ class RunResult:
     lengths: dict[int, tuple[float, int]]  # split I runs: target length -> (correct, episodes), splits pooled
     screen: list[tuple[int, bool]] = field(default_factory=list)  # seed screen: (candidate seed, passed)
     kept_seed: int | None = None  # the screened seed that trained (None: not screened)
+    # split letter -> (episodes, failed episodes per failure kind); runs evaluated before
+    # session 20 have none
+    failures: dict[str, tuple[int, dict[str, int]]] = field(default_factory=dict)
 
 
 # ------------------------------------------------------------------------------ loading
@@ -135,10 +139,12 @@ def _read_run(path: Path) -> RunResult:
             if letter == "G" or k_shot == 1:
                 rows[g_row if letter == "G" else letter] = float(split["exact_match"])
     group = Group(table, doc["column"], variant, doc.get("paper_column"), doc["title"])
+    failures = {split["letter"] or key: (int(split["examples"]), split["failures"])
+                for key, split in doc["splits"].items() if "failures" in split}
     return RunResult(name=doc["run"], group=group, seed=int(doc["seed"]), updates=int(doc["updates"]),
                      max_updates=int(doc["max_updates"]), best_dev=doc.get("best_dev_exact_match"),
                      batch_size=_batch_size(path.parent / "config.yaml"), rows=rows, lengths=lengths,
-                     **_metrics(path.parent / "metrics.jsonl"))
+                     failures=failures, **_metrics(path.parent / "metrics.jsonl"))
 
 
 def _batch_size(config: Path) -> int | None:
@@ -314,7 +320,7 @@ def render(runs: list[RunResult], curves_link: str | None, readings: list[tuple[
            "(`gscan-ros experiment` writes them); do not edit by hand. Closed-loop exact match %. "
            "Ours: mean ± sample standard deviation over the seeds (a value without ± is one seed); "
            f"paper: {TABLE1_SOURCE} and {TABLE2_SOURCE} (mean ± std over three runs).", ""]
-    out += _table1(tables) + _table2(tables) + _budget(tables) + _screens(tables)
+    out += _table1(tables) + _table2(tables) + _budget(tables) + _screens(tables) + _failures(tables)
     if curves_link:
         out += ["## Learning curves", "", f"![dev exact match vs updates, one panel per column]({curves_link})", ""]
     out += _notes(tables)
@@ -420,6 +426,32 @@ def _screens(t: Tables) -> list[str]:
             "(`screen_seeds`, docs/results.md \"Seed screening\"). Starts on target per column:", "",
             "| column | candidates on target | runs (seed: kept seed after how many candidates) |",
             "|---|---:|---|", *rows, ""]
+
+
+def _failures(t: Tables) -> list[str]:
+    """Per column and split, the share of episodes failed in each failure kind (the
+    columns' seeds pooled), for the runs whose results.json counts them."""
+    rows = []
+    for g in t.groups:
+        pooled: dict[str, list] = {}
+        for run in t.members[g]:
+            for letter, (episodes, kinds) in run.failures.items():
+                cell = pooled.setdefault(letter, [0, dict.fromkeys(FAILURE_KINDS, 0)])
+                cell[0] += episodes
+                for kind in FAILURE_KINDS:
+                    cell[1][kind] += kinds.get(kind, 0)
+        for letter in sorted(pooled):
+            episodes, kinds = pooled[letter]
+            shares = " | ".join(f"{100 * kinds[k] / episodes:.1f}" if episodes else "–" for k in FAILURE_KINDS)
+            rows.append(f"| {g.label} | {letter} | {episodes} | {shares} |")
+    if not rows:
+        return []
+    return ["## Where the failures go", "",
+            "% of each split's episodes failed in each way (`gscan-ros evaluate` replays the gold and the "
+            "predicted actions: docs/model.md, \"Metrics\"), a column's seeds pooled; runs evaluated before "
+            "session 20 did not count them.", "",
+            "| column | split | episodes | " + " | ".join(k.replace("_", " ") for k in FAILURE_KINDS) + " |",
+            "|---|---|---:|" + "---:|" * len(FAILURE_KINDS), *rows, ""]
 
 
 def _examples_text(column: str, runs: list[RunResult]) -> str:

@@ -83,6 +83,26 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+_FAILURE_TEXT = {
+    "no_stop": "no <eos> of its own: stopped at max_steps",
+    "target_not_reached": "never stood on the target",
+    "wrong_end_state": "reached the target, but the agent or an object ended elsewhere",
+    "right_end_state": "the planner's end state by other actions",
+}
+
+
+def _failure(episode, graph, result, planned) -> str:
+    """What kind of failure the episode's actions are against the planner's (`gscan_ros.training.failures`)."""
+    from dataclasses import replace
+
+    from gscan_ros.nodes.commander import Outcome
+    from gscan_ros.training.failures import classify_failure
+
+    gold = replace(episode, command=graph.command, actions=tuple(planned))
+    kind = classify_failure(gold, result.moves, stopped=result.outcome is not Outcome.MAX_STEPS)
+    return f"{kind.replace('_', ' ')} ({_FAILURE_TEXT[kind]})"
+
+
 def _report(graph, episode, result, gif_path: Path) -> bool:
     """Print one episode (a GscanCommander EpisodeResult), write its GIF; True when the actions equal the planner's."""
     from gscan_ros.world import demonstrate
@@ -92,7 +112,8 @@ def _report(graph, episode, result, gif_path: Path) -> bool:
     actions = result.actions
     moves = [a.token for a in result.moves]
     try:
-        gold = [a.token for a in demonstrate(episode.situation, graph.command)]
+        planned = demonstrate(episode.situation, graph.command)
+        gold = [a.token for a in planned]
     except GscanError as exc:
         gold, why = None, str(exc)
     if graph.typed is not None:
@@ -109,7 +130,8 @@ def _report(graph, episode, result, gif_path: Path) -> bool:
         print(f"planner:  no demonstration ({why})")
     else:
         print(f"planner:  {', '.join(gold)}  [{len(gold)} actions]")
-        print(f"match:    {'yes, exact match' if moves == gold else 'no'}")
+        verdict = "yes, exact match" if moves == gold else "no, " + _failure(episode, graph, result, planned)
+        print(f"match:    {verdict}")
     attention = [
         {word: msg_to_attention(maps[t], grid_size=episode.situation.grid_size)
          for word, maps in result.attention.items() if t < len(maps)}

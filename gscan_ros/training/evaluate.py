@@ -53,8 +53,9 @@ class Prediction:
 
 
 def failure_kind(prediction: Prediction, max_steps: int = MAX_STEPS) -> str | None:
-    """The `FAILURE_KINDS` entry of a failed prediction (None for an exact match)."""
-    return classify_failure(prediction.episode, prediction.actions, max_steps)
+    """The `FAILURE_KINDS` entry of a failed prediction (None for an exact match); more
+    than `max_steps` actions means the decoding cap, not an EOS, ended it."""
+    return classify_failure(prediction.episode, prediction.actions, stopped=len(prediction.actions) <= max_steps)
 
 
 @dataclass

@@ -17,13 +17,13 @@ FAILURE_KINDS = (
 )
 
 
-def classify_failure(episode: Episode, actions: Sequence[Action], max_steps: int) -> str | None:
-    """The `FAILURE_KINDS` entry of `actions` decoded for `episode` with a cap of
-    `max_steps` (None when they are the gold). The end state ignores the agent's heading;
-    an action the world rejects leaves it as it was, as in the closed loop."""
+def classify_failure(episode: Episode, actions: Sequence[Action], stopped: bool = True) -> str | None:
+    """The `FAILURE_KINDS` entry of `actions` decoded for `episode`, `stopped` by the
+    model's own EOS or not (None when they are the gold). The end state ignores the
+    agent's heading; an action the world rejects leaves it as it was, as in the closed loop."""
     if list(actions) == list(episode.actions):
         return None
-    if len(actions) > max_steps:
+    if not stopped:
         return "no_stop"
     gold, ours = _replay(episode, episode.actions), _replay(episode, actions)
     if ours[:2] == gold[:2]:

@@ -41,6 +41,10 @@ def test_replay_reports_overall_and_per_split(replay_env, capsys):
     assert "exact match: 33.33% (3/9)" in out
     assert "train" in out and "100.00%" in out
     assert "visual" in out and "0.00%" in out
+    visual = next(line for line in out.splitlines() if line.strip().startswith("visual"))
+    assert "(failed: " in visual  # each failed episode's kind, counted
+    train = next(line for line in out.splitlines() if line.strip().startswith("train"))
+    assert "failed" not in train
 
 
 def test_replay_limits_and_filters_episodes(replay_env, capsys):

@@ -45,7 +45,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"replayed {len(episodes)} episodes of {args.bag} with {model} (parser {policy.parser_name})")
     print(f"exact match: {result.exact_match:.2f}% ({matched}/{len(episodes)})")
     for split, stats in result.summary().items():
-        print(f"  {split:<16} {stats['exact_match']:6.2f}%  of {stats['examples']} episodes")
+        failed = ", ".join(f"{n} {kind.replace('_', ' ')}" for kind, n in stats["failures"].items() if n)
+        print(f"  {split:<16} {stats['exact_match']:6.2f}%  of {stats['examples']} episodes"
+              + (f"  (failed: {failed})" if failed else ""))
     if reader.report.lost_episodes and args.max_episodes is None:
         print(f"warning: {reader.report.summary()}")
     return 0

@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 from collections import defaultdict
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Sequence
 
 import numpy as np
@@ -50,6 +51,11 @@ class Prediction:
     @property
     def exact_match(self) -> bool:
         return list(self.actions) == list(self.episode.actions)
+
+    @cached_property
+    def failure(self) -> str | None:
+        """`failure_kind` at the default cap, replayed once (summary and predictions file both read it)."""
+        return failure_kind(self)
 
 
 def failure_kind(prediction: Prediction, max_steps: int = MAX_STEPS) -> str | None:
@@ -97,7 +103,7 @@ class EvalResult:
 
 def failure_counts(predictions: Sequence[Prediction]) -> dict[str, int]:
     """How many of `predictions` failed in each of the `FAILURE_KINDS`."""
-    kinds = [failure_kind(p) for p in predictions]
+    kinds = [p.failure for p in predictions]
     return {kind: kinds.count(kind) for kind in FAILURE_KINDS}
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from gscan_ros.training.evaluate import EvalResult, failure_kind
+from gscan_ros.training.evaluate import EvalResult
 from gscan_ros.training.failures import FAILURE_KINDS
 
 
@@ -39,7 +39,7 @@ def prediction_records(result: EvalResult):
                                   for w, maps in (p.attention or {}).items()},
             "accuracy": p.token_accuracy,
             "exact_match": p.exact_match,
-            "failure": failure_kind(p),
+            "failure": p.failure,
             "split": ep.split,
             "example_id": ep.example_id,
         }

@@ -156,21 +156,21 @@ class Probe:
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self.received: dict[str, list] = defaultdict(list)
+        self.created_ns = time.time_ns()  # messages published before belong to earlier tests
 
     def record(self, topic: str, msg_type, qos, since_ns: int | None = None) -> list:
-        """Subscribe and keep every message of `topic` in `self.received[topic]`; with
-        `since_ns`, only those published at or after it (source timestamp, ns). In a shared
-        domain a participant still shutting down from an earlier test can serve its older
-        latched samples to a new subscription."""
+        """Subscribe and keep the messages of `topic` in `self.received[topic]` that were
+        published at or after `since_ns` (source timestamp, ns), by default the probe's
+        creation. In a shared domain a participant still shutting down from an earlier test
+        can serve its older latched samples to a new subscription; they are not this test's."""
         kept = self.received[topic]
-        if since_ns is None:
-            self.node.create_subscription(msg_type, topic, kept.append, qos)
-        else:
-            def keep_recent(msg, info) -> None:
-                if info["source_timestamp"] >= since_ns:
-                    kept.append(msg)
+        since_ns = self.created_ns if since_ns is None else since_ns
 
-            self.node.create_subscription(msg_type, topic, keep_recent, qos)
+        def keep_recent(msg, info) -> None:
+            if info["source_timestamp"] >= since_ns:
+                kept.append(msg)
+
+        self.node.create_subscription(msg_type, topic, keep_recent, qos)
         return kept
 
     def spin_until(self, predicate: Callable[[], bool], timeout: float = TIMEOUT, what: str = "condition") -> None:

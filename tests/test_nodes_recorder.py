@@ -106,6 +106,25 @@ def test_a_reset_mid_episode_is_recorded_as_aborted_and_the_next_episode_starts_
     assert "outcome" not in complete.header
 
 
+def test_a_reset_notice_that_overtakes_the_last_reply_waits_for_it(live):
+    """Topics arrive independently: the world's reply to TURN, published before the reset,
+    is delivered after the reset notice; the aborted episode still has both actions."""
+    live.command()
+    live.policy_acts(WALK)
+    live.policy_seq += 1
+    live.recorder.on_action(action_to_msg(TURN), live.info(live.policy_seq))
+    live.world.step(TURN)
+    reply = (observation_to_msg(live.world.encode()), live.info())
+    reset = (reset_to_msg(live.info()["source_timestamp"]), live.info())
+    live.recorder.on_world_reset(*reset)
+    assert read(live.recorder.bag_dir, include_aborted=True)[0] == []  # not cut yet: a reply may be missing
+    live.recorder.on_observation(*reply)
+    live.world = World(EPISODE.situation)
+    live.publish_state()  # the new state: everything sent before the reset is in
+    [aborted] = read(live.recorder.bag_dir, include_aborted=True)[0]
+    assert aborted.episode.actions == (WALK, TURN) and aborted.header["outcome"] == "aborted"
+
+
 def test_over_dds_a_reset_service_call_ends_the_recorded_episode_as_aborted(probe, tmp_path):
     """The world's world_reset notice and the actions' sequence numbers reach the recorder."""
     from std_msgs.msg import UInt8MultiArray

@@ -1,6 +1,5 @@
 """world_simulator_node in-process: lock-step replies, rejected and stale actions, reset_world."""
 import json
-import time
 
 import numpy as np
 import pytest
@@ -22,7 +21,7 @@ from ros_helpers import parameters, source_info
 @pytest.fixture
 def world(probe):
     """(node, observations, status) with the node serving random seed 3, no images."""
-    observations = probe.record("observation", UInt8MultiArray, LATCHED_LOG_QOS, since_ns=time.time_ns())
+    observations = probe.record("observation", UInt8MultiArray, LATCHED_LOG_QOS)
     status = probe.record("status", String, EVENT_QOS)
     node = WorldSimulatorNode(context=probe.context, parameter_overrides=parameters(seed=3, publish_images=False))
     probe.executor.add_node(node)

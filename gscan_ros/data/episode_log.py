@@ -19,7 +19,10 @@ buffers when it ends, with the rule the policy follows (docs/ros.md "Lock-step")
 
 An episode ends **complete** with its `<eos>`, or **aborted** by a world reset (the
 world's `world_reset` stamp): then the chain up to the reset is recorded as aborted,
-and nothing published before the reset counts for a later episode.
+and nothing published before the reset counts for a later episode. The reset notice can
+overtake the world's last replies (another topic), so it is cut only once the world's
+new state, published after it, has arrived (`reset_settled`): one publisher's messages
+arrive in order, so every reply sent before the reset is in by then.
 
 Pure Python (no rclpy): messages are opaque payloads here.
 """
@@ -211,8 +214,14 @@ class EpisodeLog:
         """A command graph newer than `eos` arrived: its episode will not complete any more."""
         return self.graphs.first_after(eos.t_ns) is not None
 
+    def reset_settled(self, reset_ns: int) -> bool:
+        """Whether an observation published at or after the reset has arrived, and with it
+        every earlier one (the world publishes its new state after the reset notice)."""
+        return self.observations.first_after(reset_ns - 1) is not None
+
     def add_reset(self, reset_ns: int) -> EpisodeRecord | None:
-        """The world was reset at `reset_ns`: the episode running then, recorded as aborted."""
+        """The world was reset at `reset_ns`: the episode running then, recorded as aborted
+        with the replies that have arrived (call it once `reset_settled`, to have them all)."""
         if reset_ns <= self._ended_ns:
             return None
         graph = self.graphs.latest_before(reset_ns)

@@ -12,6 +12,7 @@ its last written episode. All four parameters can be changed while recording.
 from __future__ import annotations
 
 import time
+from collections import deque
 
 from rclpy.node import Node
 from sensor_msgs.msg import Image
@@ -74,6 +75,7 @@ class EpisodeRecorderNode(Node):
         include_images = self.get_parameter("include_images").value
         self._log = EpisodeLog(self.get_parameter("buffer_messages").value, images=include_images)
         self._pending_eos = None  # an <eos> whose episode waits for the world's last replies
+        self._pending_resets: deque[int] = deque()  # resets waiting for the replies sent before them
         # Latched topics first: their stored samples arrive as soon as we match.
         self.create_subscription(Header, WORLD_RESET, self.on_world_reset, _log_qos(interface.WORLD_RESET))
         self.create_subscription(String, SITUATION, self.on_situation, _log_qos(interface.SITUATION))
@@ -180,7 +182,10 @@ class EpisodeRecorderNode(Node):
             self._write(record)
 
     def _retry_pending(self) -> None:
-        """Close a pending `<eos>` once the observations it waited for have arrived."""
+        """Cut the episodes a reset or an `<eos>` ended once the observations they waited for
+        have arrived (a reset first: a later `<eos>` belongs to the episode after it)."""
+        while self._pending_resets and self._log.reset_settled(self._pending_resets[0]):
+            self._abort(self._pending_resets.popleft())
         eos = self._pending_eos
         if eos is None:
             return
@@ -201,7 +206,11 @@ class EpisodeRecorderNode(Node):
 
     @guarded
     def on_world_reset(self, msg: Header, info: dict) -> None:
-        reset_ns = msg_to_reset(msg)
+        """The running episode ends aborted, cut when the world's state after the reset arrives."""
+        self._pending_resets.append(msg_to_reset(msg))
+        self._retry_pending()
+
+    def _abort(self, reset_ns: int) -> None:
         try:
             record = self._log.add_reset(reset_ns)
         except IncompleteEpisode as exc:
@@ -221,6 +230,8 @@ class EpisodeRecorderNode(Node):
         self.status.info(f"recorded episode {episode_id}{aborted} ({len(record.actions)} actions{left_out})")
 
     def destroy_node(self) -> None:
+        while self._pending_resets:  # the world's new state never came: keep what did
+            self._abort(self._pending_resets.popleft())
         self._writer.close()
         super().destroy_node()
 

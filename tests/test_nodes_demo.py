@@ -8,7 +8,7 @@ from PIL import Image
 from gscan_ros.cli import main
 from gscan_ros.data.bag import iter_bag_episodes
 from gscan_ros.data.sources import sample_episode
-from gscan_ros.training.failures import FAILURE_KINDS
+from gscan_ros.training.failures import FAILURE_KINDS, failure_label
 
 from model_support import tiny_checkpoint
 from ros_helpers import fresh_domain_id
@@ -32,7 +32,7 @@ def test_demo_prints_the_episodes_and_writes_bag_and_gifs(tmp_path, monkeypatch,
         assert f"planner:  {gold}" in printed
     assert "parse (semantic):" in printed
     verdicts = [line for line in printed.splitlines() if line.startswith("match:    ")]
-    kinds = "|".join(k.replace("_", " ") for k in FAILURE_KINDS)
+    kinds = "|".join(map(failure_label, FAILURE_KINDS))
     assert len(verdicts) == 2 and all(re.fullmatch(rf"match:    (yes, exact match|no, ({kinds}) \(.+\))", v)
                                       for v in verdicts), verdicts
     assert "of 2 episodes" in printed

@@ -83,24 +83,16 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-_FAILURE_TEXT = {
-    "no_stop": "no <eos> of its own: stopped at max_steps",
-    "target_not_reached": "never stood on the target",
-    "wrong_end_state": "reached the target, but the agent or an object ended elsewhere",
-    "right_end_state": "the planner's end state by other actions",
-}
-
-
 def _failure(episode, graph, result, planned) -> str:
     """What kind of failure the episode's actions are against the planner's (`gscan_ros.training.failures`)."""
     from dataclasses import replace
 
     from gscan_ros.nodes.commander import Outcome
-    from gscan_ros.training.failures import classify_failure
+    from gscan_ros.training.failures import FAILURE_KINDS, classify_failure, failure_label
 
     gold = replace(episode, command=graph.command, actions=tuple(planned))
     kind = classify_failure(gold, result.moves, stopped=result.outcome is not Outcome.MAX_STEPS)
-    return f"{kind.replace('_', ' ')} ({_FAILURE_TEXT[kind]})"
+    return f"{failure_label(kind)} ({FAILURE_KINDS[kind]})"
 
 
 def _report(graph, episode, result, gif_path: Path) -> bool:

@@ -33,6 +33,7 @@ def run(args: argparse.Namespace) -> int:
     from gscan_ros.data.bag import iter_bag_episodes
     from gscan_ros.model.policy import Policy
     from gscan_ros.training.evaluate import evaluate_episodes
+    from gscan_ros.training.failures import failure_label
 
     reader = iter_bag_episodes(args.bag, args.splits)
     episodes = list(itertools.islice(reader, args.max_episodes))
@@ -45,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"replayed {len(episodes)} episodes of {args.bag} with {model} (parser {policy.parser_name})")
     print(f"exact match: {result.exact_match:.2f}% ({matched}/{len(episodes)})")
     for split, stats in result.summary().items():
-        failed = ", ".join(f"{n} {kind.replace('_', ' ')}" for kind, n in stats["failures"].items() if n)
+        failed = ", ".join(f"{n} {failure_label(kind)}" for kind, n in stats["failures"].items() if n)
         print(f"  {split:<16} {stats['exact_match']:6.2f}%  of {stats['examples']} episodes"
               + (f"  (failed: {failed})" if failed else ""))
     if reader.report.lost_episodes and args.max_episodes is None:

@@ -9,12 +9,17 @@ from gscan_ros.errors import InvalidActionError
 from gscan_ros.world.types import Action
 from gscan_ros.world.world import World
 
-FAILURE_KINDS = (
-    "no_stop",  # never emitted EOS: ran to the decoding cap
-    "target_not_reached",  # the agent never stood on the target object's cell
-    "wrong_end_state",  # reached the target, but the agent or an object ended elsewhere
-    "right_end_state",  # the gold end state (agent cell, every object's cell) by other actions: manner or route
-)
+FAILURE_KINDS = {  # kind -> what it means, in the order the reports print them
+    "no_stop": "no <eos> of its own: stopped at the decoding cap",
+    "target_not_reached": "never stood on the target",
+    "wrong_end_state": "reached the target, but the agent or an object ended elsewhere",
+    "right_end_state": "the gold end state (agent cell, every object's cell) by other actions",
+}
+
+
+def failure_label(kind: str) -> str:
+    """How tables and logs print a kind: `no_stop` -> `no stop`."""
+    return kind.replace("_", " ")
 
 
 def classify_failure(episode: Episode, actions: Sequence[Action], stopped: bool = True) -> str | None:

@@ -5,14 +5,14 @@ import json
 from pathlib import Path
 
 from gscan_ros.training.evaluate import EvalResult
-from gscan_ros.training.failures import FAILURE_KINDS
+from gscan_ros.training.failures import FAILURE_KINDS, failure_label
 
 
 def markdown_table(summary: dict, title: str = "") -> str:
     """One row per split (letter, key, examples, exact match %, token accuracy %, and the
     failed episodes of each `FAILURE_KINDS` entry)."""
     lines = [f"## {title}", ""] if title else []
-    kinds = [k.replace("_", " ") for k in FAILURE_KINDS]
+    kinds = [failure_label(k) for k in FAILURE_KINDS]
     lines += [f"| split | key | examples | exact match % | token accuracy % | {' | '.join(kinds)} |",
               "|---|---|---:|---:|---:|" + "---:|" * len(kinds)]
     for split, s in summary.items():

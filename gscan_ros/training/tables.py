@@ -24,7 +24,7 @@ from pathlib import Path
 
 from gscan_ros.errors import GscanError
 from gscan_ros.training.config import read_yaml
-from gscan_ros.training.failures import FAILURE_KINDS
+from gscan_ros.training.failures import FAILURE_KINDS, failure_label
 from gscan_ros.training.paper_figures import (
     COLUMN_TITLES,
     K_SHOT_LABELS,
@@ -450,7 +450,7 @@ def _failures(t: Tables) -> list[str]:
             "% of each split's episodes failed in each way (`gscan-ros evaluate` replays the gold and the "
             "predicted actions: docs/model.md, \"Metrics\"), a column's seeds pooled; runs evaluated before "
             "session 20 did not count them.", "",
-            "| column | split | episodes | " + " | ".join(k.replace("_", " ") for k in FAILURE_KINDS) + " |",
+            "| column | split | episodes | " + " | ".join(map(failure_label, FAILURE_KINDS)) + " |",
             "|---|---|---:|" + "---:|" * len(FAILURE_KINDS), *rows, ""]
 
 

@@ -125,6 +125,25 @@ def test_a_reset_notice_that_overtakes_the_last_reply_waits_for_it(live):
     assert aborted.episode.actions == (WALK, TURN) and aborted.header["outcome"] == "aborted"
 
 
+def test_an_eos_sent_before_a_reset_completes_its_episode_whatever_arrives_first(live):
+    """The policy's <eos> comes before the reset, but the reply it waits for comes after the
+    reset notice: the episode is complete, not aborted."""
+    live.command()
+    live.policy_acts(WALK)
+    live.policy_seq += 1
+    live.recorder.on_action(action_to_msg(TURN), live.info(live.policy_seq))
+    live.world.step(TURN)
+    reply = (observation_to_msg(live.world.encode()), live.info())
+    live.policy_seq += 1
+    live.recorder.on_action(action_to_msg(EOS), live.info(live.policy_seq))
+    live.recorder.on_world_reset(reset_to_msg(live.info()["source_timestamp"]), live.info())
+    live.recorder.on_observation(*reply)
+    live.world = World(EPISODE.situation)
+    live.publish_state()
+    records, report = read(live.recorder.bag_dir, include_aborted=True)
+    assert [r.episode.actions for r in records] == [(WALK, TURN)] and report.aborted_episodes == 0
+
+
 def test_over_dds_a_reset_service_call_ends_the_recorded_episode_as_aborted(probe, tmp_path):
     """The world's world_reset notice and the actions' sequence numbers reach the recorder."""
     from std_msgs.msg import UInt8MultiArray

@@ -51,6 +51,13 @@ class LiveStack:
             self.world.step(action)
             self.publish_state()
 
+    def policy_acts_reply_held(self, action):
+        """The policy's action; the world's reply is stamped now but returned, to deliver later."""
+        self.policy_seq += 1
+        self.recorder.on_action(action_to_msg(action), self.info(self.policy_seq))
+        self.world.step(action)
+        return observation_to_msg(self.world.encode()), self.info()
+
     def reset(self):
         self.world = World(EPISODE.situation)
         self.recorder.on_world_reset(reset_to_msg(self.info()["source_timestamp"]), self.info())
@@ -111,10 +118,7 @@ def test_a_reset_notice_that_overtakes_the_last_reply_waits_for_it(live):
     is delivered after the reset notice; the aborted episode still has both actions."""
     live.command()
     live.policy_acts(WALK)
-    live.policy_seq += 1
-    live.recorder.on_action(action_to_msg(TURN), live.info(live.policy_seq))
-    live.world.step(TURN)
-    reply = (observation_to_msg(live.world.encode()), live.info())
+    reply = live.policy_acts_reply_held(TURN)
     reset = (reset_to_msg(live.info()["source_timestamp"]), live.info())
     live.recorder.on_world_reset(*reset)
     assert read(live.recorder.bag_dir, include_aborted=True)[0] == []  # not cut yet: a reply may be missing
@@ -130,10 +134,7 @@ def test_an_eos_sent_before_a_reset_completes_its_episode_whatever_arrives_first
     reset notice: the episode is complete, not aborted."""
     live.command()
     live.policy_acts(WALK)
-    live.policy_seq += 1
-    live.recorder.on_action(action_to_msg(TURN), live.info(live.policy_seq))
-    live.world.step(TURN)
-    reply = (observation_to_msg(live.world.encode()), live.info())
+    reply = live.policy_acts_reply_held(TURN)
     live.policy_seq += 1
     live.recorder.on_action(action_to_msg(EOS), live.info(live.policy_seq))
     live.recorder.on_world_reset(reset_to_msg(live.info()["source_timestamp"]), live.info())

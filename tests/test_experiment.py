@@ -106,6 +106,29 @@ def test_changed_recipe_marks_runs_stale_and_leaves_them(trained, tmp_path, caps
     assert (root / "results/state_s0/results.json").stat().st_mtime_ns == before
 
 
+@pytest.mark.slow
+def test_a_run_whose_checkpoints_were_lost_starts_over_keeping_the_earlier_attempt(trained, capsys):
+    root, plan = trained
+    run = root / "results/semantic_s0"
+    lines = (run / "metrics.jsonl").read_text().splitlines()
+    (run / "metrics.jsonl").write_text("\n".join(lines[:-1]) + "\n")  # killed, and then the machine was replaced
+    for checkpoint in run.glob("*.pt"):
+        checkpoint.unlink()
+    earlier = {name: (run / name).read_bytes() for name in ("metrics.jsonl", "config.yaml", "results.json")}
+    capsys.readouterr()
+    assert experiment(plan, "--dry-run") == 0
+    assert re.search(r"new\s+semantic_s0\s+2/2\s+no last.pt: starts over, these logged updates kept in .replaced/",
+                     capsys.readouterr().out)
+    assert experiment(plan) == 0
+    (archive,) = (run / ".replaced").iterdir()
+    assert archive.name.endswith("_2upd")
+    assert {name: (archive / name).read_bytes() for name in earlier} == earlier
+    events = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert [e["resumed"] for e in events if e["event"] == "start"] == [False] and events[-1]["event"] == "end"
+    assert json.loads((run / "results.json").read_text())["updates"] == 2
+    assert f"the earlier attempt's files moved to {archive}" in capsys.readouterr().out
+
+
 def test_a_live_lock_means_running_and_a_dead_one_is_stale(tmp_path, capsys):
     plan = write_plan(tmp_path / "plan.yaml", tmp_path)
     live, dead = tmp_path / "results/semantic_s0", tmp_path / "results/state_s0"
@@ -126,7 +149,7 @@ def test_a_start_without_a_checkpoint_is_new_and_says_it_starts_over(tmp_path, c
     (run / "metrics.jsonl").write_text(json.dumps({"event": "train", "step": 1, "loss": 1.0}) + "\n")
     assert experiment(plan, "--dry-run") == 0
     out = capsys.readouterr().out
-    assert re.search(r"new\s+semantic_s0\s+1/2\s+no last.pt: starts over", out)
+    assert re.search(r"new\s+semantic_s0\s+1/2\s+no last.pt: starts over, these logged updates kept", out)
     assert re.search(r"new\s+state_s0\s+0/2\s*$", out, re.M)
 
 

@@ -51,6 +51,8 @@ STATES = ("done", "evaluate", "running", "resume", "new", "stale")
 LOCK = ".lock"
 DATASET_DONE = "recipe.json"
 EVAL_SCRATCH = ".evaluation"
+# Where a restarted run's earlier attempt is kept (hidden: the report reads only live runs).
+REPLACED = ".replaced"
 POLL_S = 5.0
 
 
@@ -521,8 +523,31 @@ def run_state(run_dir: Path, spec: RunSpec, cfg, plan: Plan, ignore_lock: bool =
     elif (run_dir / "last.pt").exists():
         state.status = "resume"
     elif state.updates:
-        state.detail = "no last.pt: starts over, replacing these logged updates"
+        state.detail = f"no last.pt: starts over, these logged updates kept in {REPLACED}/"
     return state
+
+
+def archive_attempt(run_dir: Path) -> Path | None:
+    """Move an earlier attempt's files (a start whose checkpoints were lost, or a stale run
+    being restarted) into `<run>/.replaced/<UTC time>_<updates>upd/`, so a restart loses no
+    logged curve or result; None when there is nothing to move."""
+    from gscan_ros.training.trainer import RunFiles
+
+    files = RunFiles(run_dir).existing() + [p for p in (run_dir / "results.json", run_dir / "train.log",
+                                                         run_dir / "evaluate.log") if p.exists()]
+    if not files:
+        return None
+    updates = trained_updates(read_events(run_dir / "metrics.jsonl"))
+    stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+    archive = run_dir / REPLACED / f"{stamp}_{updates}upd"
+    suffix = 1
+    while archive.exists():
+        suffix += 1
+        archive = run_dir / REPLACED / f"{stamp}_{updates}upd_{suffix}"
+    archive.mkdir(parents=True)
+    for path in files:
+        path.rename(archive / path.name)
+    return archive
 
 
 def _evaluated(run_dir: Path, spec: RunSpec, end: dict) -> bool:
@@ -693,9 +718,10 @@ class Runner:
             cmd += ["--set", item]
         if resume:
             cmd.append("--resume")
-        elif any((run_dir / n).exists() for n in ("config.yaml", "metrics.jsonl", "best.pt", "model.pt")):
-            cmd.append("--overwrite")  # our own interrupted start (no last.pt) or a stale run being restarted
-            (run_dir / "results.json").unlink(missing_ok=True)  # the replaced run's
+        else:
+            archive = archive_attempt(run_dir)
+            if archive is not None:
+                self.echo(f"{spec.name}: the earlier attempt's files moved to {archive}")
         self._call(cmd, run_dir / "train.log", lock)
 
     def _evaluate(self, spec: RunSpec, cfg, run_dir: Path, data_dir: Path, lock: FileLock) -> None:

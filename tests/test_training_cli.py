@@ -67,3 +67,25 @@ def test_resume_with_another_parser_is_refused(dataset, tmp_path, capsys):
 def test_unknown_config_key_exits_1(dataset, tmp_path, capsys):
     assert run_train(dataset, tmp_path / "r", "--set", "learning_rate=1") == 1
     assert "learning_rate" in capsys.readouterr().err
+
+
+def test_a_run_is_reproduced_by_its_seed_and_by_a_resume(dataset, tmp_path):
+    """The same config and seed give the same weights, whether trained in one go, again, or
+    stopped at a checkpoint and resumed (the batch cursor and every RNG are restored)."""
+    torch.set_num_threads(1)
+    straight, again, resumed = tmp_path / "straight", tmp_path / "again", tmp_path / "resumed"
+    for run in (straight, again):
+        assert run_train(dataset, run, "--set", "max_updates=4", "--set", "seed=5") == 0
+    assert run_train(dataset, resumed, "--set", "max_updates=2", "--set", "seed=5") == 0
+    assert run_train(dataset, resumed, "--set", "max_updates=4", "--set", "seed=5", "--resume") == 0
+    weights = {run: read_checkpoint(run / "last.pt")["state_dict"] for run in (straight, again, resumed)}
+    for run in (again, resumed):
+        assert weights[run].keys() == weights[straight].keys()
+        assert all(torch.equal(weights[run][k], v) for k, v in weights[straight].items()), run.name
+
+    def losses(run):
+        return [e["loss"] for e in map(json.loads, (run / "metrics.jsonl").read_text().splitlines())
+                if e["event"] == "train"]
+    assert losses(again) == losses(straight) == losses(resumed)
+    assert run_train(dataset, tmp_path / "other", "--set", "max_updates=4", "--set", "seed=6") == 0
+    assert losses(tmp_path / "other") != losses(straight)  # the seed matters

@@ -57,6 +57,34 @@ def test_schedule_is_applied_and_resumed(dataset, tmp_path):
     assert lrs == pytest.approx([0.004, 0.004, 0.0025, 0.001, 0.001])
 
 
+def test_late_batch_size_takes_over_at_its_update_and_survives_a_resume_there(dataset, tmp_path):
+    torch.set_num_threads(1)
+    late = ["--set", "late_batch_size=4", "--set", "late_batch_from=2", "--set", "validate_every=2",
+            "--set", "checkpoint_every=2"]
+    straight, resumed = tmp_path / "straight", tmp_path / "resumed"
+    assert run_train(dataset, straight, *late, "--set", "max_updates=4") == 0
+    assert run_train(dataset, resumed, *late, "--set", "max_updates=2") == 0  # stops right at the switch
+    assert run_train(dataset, resumed, *late, "--set", "max_updates=4", "--resume") == 0
+    records = [r for r in map(json.loads, (straight / "metrics.jsonl").read_text().splitlines())
+               if r["event"] == "train"]
+    assert [r["mean_batch"] for r in records] == [16, 16, 4, 4]
+    assert read_checkpoint(straight / "last.pt")["cursor"]["batch"] == 2  # a fresh epoch began at the switch
+    weights = [read_checkpoint(run / "last.pt")["state_dict"] for run in (straight, resumed)]
+    assert all(torch.equal(weights[1][k], v) for k, v in weights[0].items())
+
+
+@pytest.mark.parametrize("overrides, named", [(["late_batch_size=100"], "go together"),
+                                              (["late_batch_from=5"], "go together"),
+                                              (["late_batch_size=-1", "late_batch_from=5"], ">= 0"),
+                                              (["late_batch_size=200", "late_batch_from=500", "screen_seeds=8",
+                                                "max_updates=40000"], "after the seed screen")])
+def test_bad_late_batch_settings_are_named(overrides, named):
+    with pytest.raises(ConfigError, match=named):
+        TrainConfig.load(None, overrides)
+    assert TrainConfig(batch_size=50, late_batch_size=200, late_batch_from=10).batch_size_at(9) == 50
+    assert TrainConfig(batch_size=50, late_batch_size=200, late_batch_from=10).batch_size_at(10) == 200
+
+
 def test_training_stops_once_the_target_is_reached(dataset, tmp_path, monkeypatch):
     """Dev exact match is scripted (0, 0, 60, ...): training stops at the third validation."""
     import gscan_ros.training.trainer as trainer

@@ -59,6 +59,13 @@ class TrainConfig:
     """Appearances per epoch of the `oversample_word` episodes."""
     batch_size: int = 200
     """Episodes per update."""
+    late_batch_size: int = 0
+    """From update `late_batch_from` on, batches of this many episodes (a fresh epoch starts
+    at the switch); 0 = `batch_size` throughout. Small batches reach high dev accuracy in
+    few examples, large ones weaken the noun's colour preference that costs split C
+    (docs/results.md, "The faithful recipe along its first 16,000 updates")."""
+    late_batch_from: int = 0
+    """The update at which `late_batch_size` takes over."""
     lr: float = 1e-3
     """Adam (peak) learning rate, betas 0.9/0.999 (the original: 1e-3, constant)."""
     warmup_updates: int = 0
@@ -148,6 +155,15 @@ class TrainConfig:
         if not isinstance(self.oversample_word, str) or (self.oversample_factor > 1) != bool(self.oversample_word):
             raise ConfigError("oversample_word and oversample_factor > 1 go together "
                               f"(got {self.oversample_word!r} and {self.oversample_factor!r})")
+        if int(self.late_batch_size) < 0 or int(self.late_batch_from) < 0:
+            raise ConfigError(f"late_batch_size and late_batch_from must be >= 0, got {self.late_batch_size!r} "
+                              f"and {self.late_batch_from!r}")
+        if bool(self.late_batch_size) != bool(self.late_batch_from):
+            raise ConfigError("late_batch_size and late_batch_from go together "
+                              f"(got {self.late_batch_size!r} and {self.late_batch_from!r})")
+        if self.late_batch_from and self.screen_seeds > 1 and self.late_batch_from <= self.screen_updates:
+            raise ConfigError(f"late_batch_from ({self.late_batch_from}) must come after the seed screen's "
+                              f"{self.screen_updates} updates")
         if int(self.snapshot_every) < 0:
             raise ConfigError(f"snapshot_every must be >= 0, got {self.snapshot_every!r}")
         if not isinstance(self.model, dict):
@@ -160,6 +176,10 @@ class TrainConfig:
                                   f"{self.model_kind} / {self.model.get('message', 'attention')}")
             if not 0 < self.screen_updates < self.max_updates:
                 raise ConfigError(f"screen_updates must be in (0, max_updates), got {self.screen_updates!r}")
+
+    def batch_size_at(self, step: int) -> int:
+        """Episodes in update `step` (0-based)."""
+        return self.late_batch_size if self.late_batch_size and step >= self.late_batch_from else self.batch_size
 
     def lr_factor(self, step: int) -> float:
         """Multiplier of `lr` for update `step` (0-based): warm-up, then the decay."""

@@ -336,7 +336,8 @@ class Run:
             self.checkpoint(self.files.last, self.last_metrics, training_state=True)  # screening is not redone
         window = _LossWindow()
         bar = tqdm(total=cfg.max_updates, initial=self.step, desc="training", unit="upd", disable=not self.progress)
-        batches = iterate_batches(self.store, cfg.batch_size, cfg.batching, self.seed, self.cursor, self.repeats)
+        batches = iterate_batches(self.store, cfg.batch_size_at(self.step), cfg.batching, self.seed, self.cursor,
+                                  self.repeats)
         budget_s = cfg.max_minutes * 60.0
         while self.step < cfg.max_updates:
             cursor, ids = next(batches)
@@ -346,6 +347,11 @@ class Run:
                 raise TrainingDiverged(f"{exc} at update {self.step + 1}; {self.files.last} holds the last good "
                                        "state (try a lower lr or grad_clip)") from None
             self.step, self.cursor = self.step + 1, cursor
+            if cfg.late_batch_size and self.step == cfg.late_batch_from:
+                # The new size starts a fresh epoch, so a cursor saved from here on counts its batches.
+                self.cursor = EpochCursor(cursor.epoch + 1, 0)
+                batches = iterate_batches(self.store, cfg.late_batch_size, cfg.batching, self.seed, self.cursor,
+                                          self.repeats)
             bar.update(1)
             window.add(loss, len(ids))
             if self.step % cfg.log_every == 0:
@@ -429,7 +435,8 @@ class Run:
         """The `train` record of the updates since the last one (written by rank 0)."""
         now = time.time()
         line = {"event": "train", "step": self.step, "epoch": self.cursor.epoch, "loss": window.mean_loss(),
-                "examples_per_s": window.rate(now), "elapsed_s": self.elapsed_before + now - self.started,
+                "examples_per_s": window.rate(now), "mean_batch": window.examples / window.updates,
+                "elapsed_s": self.elapsed_before + now - self.started,
                 "lr": self.optimizer.param_groups[0]["lr"]}
         if self.ranks.is_main:
             _append(self.files.metrics, line)

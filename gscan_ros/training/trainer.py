@@ -347,11 +347,11 @@ class Run:
                 raise TrainingDiverged(f"{exc} at update {self.step + 1}; {self.files.last} holds the last good "
                                        "state (try a lower lr or grad_clip)") from None
             self.step, self.cursor = self.step + 1, cursor
-            if cfg.late_batch_size and self.step == cfg.late_batch_from:
+            if cfg.batch_size_at(self.step) != cfg.batch_size_at(self.step - 1):
                 # The new size starts a fresh epoch, so a cursor saved from here on counts its batches.
                 self.cursor = EpochCursor(cursor.epoch + 1, 0)
-                batches = iterate_batches(self.store, cfg.late_batch_size, cfg.batching, self.seed, self.cursor,
-                                          self.repeats)
+                batches = iterate_batches(self.store, cfg.batch_size_at(self.step), cfg.batching, self.seed,
+                                          self.cursor, self.repeats)
             bar.update(1)
             window.add(loss, len(ids))
             if self.step % cfg.log_every == 0:

@@ -155,6 +155,10 @@ def _graph_levels(graph: CommandGraph, table: "ModuleTable") -> list[list[_Entry
 
 
 # ------------------------------------------------------------------ bound parameters
+# Closed-loop projection weights this wide or narrower are kept column-major (`Bound.feat_w`).
+COLUMN_MAJOR_MAX_WIDTH = 16
+
+
 @dataclass
 class SlotBlock:
     """One level's slots [n, k] (n rows, k slots) with their parameters gathered from the
@@ -258,13 +262,22 @@ class Bound:
     def feat_w(self, block: int) -> torch.Tensor:
         """[n, F, k*S_l*A]: every slot's feature projection weights, so that one `bmm` projects
         a step's features for the whole block. Built on first use: only closed-loop
-        decoding needs it (teacher forcing precomputes the projections for all steps)."""
+        decoding needs it (teacher forcing precomputes the projections for all steps).
+
+        A block only `COLUMN_MAJOR_MAX_WIDTH` wide (one single-argument slot: a level of
+        leaves) is stored as [n, k*S_l*A, F] and returned as its transposed view: torch's
+        CPU `bmm` of [36, 150] by a row-major [150, 10] is ~1.7x slower than by a
+        column-major one, while from 20 columns on row-major is as fast or faster
+        (docs/results.md, "Closed-loop evaluation throughput")."""
         if self._feat_w[block] is None:
             blk = self.blocks[block]
             units = blk.att_unit.clamp(min=0)
             n, k = units.shape
             w = self.bank.att_feat_w[units][:, :, : blk.children.shape[2]]  # [n, k, S_l, F, A]
-            self._feat_w[block] = w.permute(0, 3, 1, 2, 4).reshape(n, w.shape[3], -1)
+            if k * w.shape[2] * w.shape[4] <= COLUMN_MAJOR_MAX_WIDTH:
+                self._feat_w[block] = w.transpose(3, 4).reshape(n, -1, w.shape[3]).transpose(1, 2)
+            else:
+                self._feat_w[block] = w.permute(0, 3, 1, 2, 4).reshape(n, w.shape[3], -1)
         return self._feat_w[block]
 
     def proj_widths(self) -> list[int]:
@@ -276,10 +289,21 @@ class Bound:
                      self.num_slots, self.spans, self.bank)
 
     def select(self, rows: torch.Tensor) -> "Bound":
-        return self._map(lambda t: t.index_select(0, rows))
+        """These rows only; feature projection weights already built are carried over, so
+        closed-loop decoding, which drops finished rows nearly every step, builds them once."""
+        kept = self._map(lambda t: t.index_select(0, rows))
+        kept._feat_w = [None if w is None else _select_rows_keeping_layout(w, rows) for w in self._feat_w]
+        return kept
 
     def prefix(self, n: int) -> "Bound":
         return self if n == self.rows else self._map(lambda t: t[:n])
+
+def _select_rows_keeping_layout(w: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+    """`w.index_select(0, rows)` of a [n, F, W] tensor, column-major again if `w` is."""
+    if w.shape[2] > 1 and w.stride(2) != 1:
+        return w.transpose(1, 2).index_select(0, rows).transpose(1, 2)
+    return w.index_select(0, rows)
+
 
 def child_maps(maps_done: list[torch.Tensor], children: torch.Tensor) -> torch.Tensor:
     """[n, k, S, cells]: the maps feeding each slot's arguments. `maps_done` holds the

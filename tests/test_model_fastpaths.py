@@ -10,7 +10,6 @@ from gscan_ros.model.fast_ops import (
     BagSum,
     ContiguousGrad,
     GruRecurrence,
-    MapWeightedSum,
     ReluDrop,
     RowGather,
     SegmentMatmul,
@@ -188,15 +187,6 @@ def test_segment_matmul_gradients():
     ref = torch.cat([xs @ w[b] for b, xs in enumerate(x.split(sizes))])
     torch.testing.assert_close(out, ref)
     assert torch.autograd.gradcheck(lambda a, b: SegmentMatmul.apply(a, b, sizes), (x, w))
-
-
-@pytest.mark.parametrize("maps_per_row", [1, 3])
-def test_map_weighted_sum_is_the_batched_product_with_gradients(maps_per_row):
-    gen = torch.Generator().manual_seed(3)
-    maps = torch.rand(4, maps_per_row, 6, dtype=torch.float64, generator=gen, requires_grad=True)
-    feats = torch.randn(4, 6, 5, dtype=torch.float64, generator=gen, requires_grad=True)
-    torch.testing.assert_close(MapWeightedSum.apply(maps, feats), torch.bmm(maps, feats))
-    assert torch.autograd.gradcheck(MapWeightedSum.apply, (maps, feats))
 
 
 @pytest.mark.parametrize("lanes", [[4, 4, 3, 3, 1], [2], [3, 1, 1, 1]])

@@ -35,7 +35,6 @@ from torch import nn
 
 from gscan_ros.language.graph import CommandGraph
 from gscan_ros.model.checkpoint import SerializableConfig
-from gscan_ros.model.fast_ops import MapWeightedSum
 from gscan_ros.model.layout import Bound, Layout, child_maps
 from gscan_ros.model.modules import ModuleTable
 from gscan_ros.model.rollout import Rollout
@@ -300,7 +299,7 @@ class CompositionalNetwork(nn.Module):
                 maps_done.append(self.passed_maps(att, blk.passes_minmax))
                 if not cfg.runs_every_gru:
                     continue  # the root's GRU runs after the loop
-                gru_in.append(MapWeightedSum.apply(maps_done[-1], feats))  # Σ_cells obs_t ⊙ att_t^w
+                gru_in.append(torch.bmm(maps_done[-1], feats))  # Σ_cells obs_t ⊙ att_t^w
             else:  # message='state': no maps, the GRU reads the sum of all cells
                 gru_in.append(feats.sum(1, keepdim=True).expand(-1, k, -1))
             if cfg.passes_state:  # + Linear(children's new states): this level's GRUs run now
@@ -319,7 +318,7 @@ class CompositionalNetwork(nn.Module):
             # attention, where it cancels (see `attend`): only the root's state, which the
             # action is decoded from, matters. The other slots' GRUs are not run and their
             # states stay zero.
-            x = MapWeightedSum.apply(maps.gather(1, root.expand(-1, 1, cells)), feats)
+            x = torch.bmm(maps.gather(1, root.expand(-1, 1, cells)), feats)
             root_h = bound.gru_root.run(x, hidden.gather(1, root.expand(-1, 1, L * H)))
             new_hidden = hidden.scatter(1, root.expand(-1, 1, L * H), root_h)
         logits = torch.bmm(root_h[:, :, (L - 1) * H :], readout.out_w)[:, 0] + readout.out_b

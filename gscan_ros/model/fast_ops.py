@@ -121,35 +121,6 @@ class ContiguousGrad(torch.autograd.Function):
         return grad.contiguous()
 
 
-class MapWeightedSum(torch.autograd.Function):
-    """Σ_cells maps ⊙ features: maps [n, J, cells], feats [n, cells, F] -> [n, J, F], the
-    GRU input of every slot (`torch.bmm(maps, feats)`).
-
-    The forward is that bmm. Its autograd backward multiplies [n, cells, J] by [n, J, F]
-    and [n, J, F] by [n, F, cells]: with one map (J = 1, the root) the first is an outer
-    product, which the batched GEMM computes ~2.6x slower than a broadcast multiply, and
-    the second is faster as feats [n, cells, F] times the gradient as a column (1,024
-    rows: 5.1 against 1.9 ms, 3.0 against 1.3 ms; docs/results.md "Training throughput")."""
-
-    @staticmethod
-    def forward(ctx, maps: torch.Tensor, feats: torch.Tensor) -> torch.Tensor:
-        ctx.save_for_backward(maps, feats)
-        return torch.bmm(maps, feats)
-
-    @staticmethod
-    def backward(ctx, grad: torch.Tensor):
-        maps, feats = ctx.saved_tensors
-        grad_maps = grad_feats = None
-        if ctx.needs_input_grad[0]:
-            grad_maps = torch.bmm(feats, grad.transpose(1, 2)).transpose(1, 2)
-        if ctx.needs_input_grad[1]:
-            if maps.shape[1] == 1:
-                grad_feats = maps.transpose(1, 2) * grad
-            else:
-                grad_feats = torch.bmm(maps.transpose(1, 2), grad)
-        return grad_maps, grad_feats
-
-
 class SegmentMatmul(torch.autograd.Function):
     """out[seg b] = x[seg b] @ w[b]: x [N, R, K] cut along N into consecutive segments of
     `sizes`, w [B, K, W] one matrix per segment -> [N, R, W]. Both directions are one

@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from gscan_ros.model.fast_ops import ContiguousGrad, GruRecurrence, MapWeightedSum, SegmentMatmul
+from gscan_ros.model.fast_ops import ContiguousGrad, GruRecurrence, SegmentMatmul
 from gscan_ros.model.layout import Bound, Layout, child_maps
 
 if TYPE_CHECKING:
@@ -75,7 +75,7 @@ def all_steps(net: "CompositionalNetwork", batch: TeacherBatch) -> TeacherOutput
     maps = _all_maps(net, bound, feats, rm)
     readout = bound.readout
     root = readout.root_slot.index_select(0, rm.rows)[:, None, None]
-    x = MapWeightedSum.apply(maps.gather(1, root.expand(-1, 1, cfg.cells)), feats)[:, 0]  # [N, F]
+    x = torch.bmm(maps.gather(1, root.expand(-1, 1, cfg.cells)), feats)[:, 0]  # [N, F]
     logits = _root_gru_logits(net.bank, x.index_select(0, rm.to_time_major), batch, readout.root_module)
     return net.loss(batch, logits, _overlap(net, bound, maps, rm))
 
@@ -91,7 +91,7 @@ def level_major(net: "CompositionalNetwork", batch: TeacherBatch) -> TeacherOutp
     feats = net.encoder(*rm.bags, groups=rm.groups)  # [N, cells, F], row-major
     if cfg.uses_attention:
         maps = _all_maps(net, bound, feats, rm)
-        x = MapWeightedSum.apply(maps, feats).index_select(0, rm.to_time_major)  # [N, J, F]
+        x = torch.bmm(maps, feats).index_select(0, rm.to_time_major)  # [N, J, F]
         overlap = _overlap(net, bound, maps, rm)
     else:
         x = feats.sum(1, keepdim=True).index_select(0, rm.to_time_major)  # [N, 1, F], every slot reads it

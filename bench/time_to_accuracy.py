@@ -202,10 +202,11 @@ def summarize(marks: list[dict], labels: list[str], target: float) -> None:
         print(f"{percent:.0f} %: {per_seed}{spread}")
     reached = sum(m[target] is not None for m in marks)
     median = median_of([m[target] for m in marks])
+    over = f"{len(labels)} seed" + ("s" if len(labels) != 1 else "")
     if median is None:
-        print(f"time-to-accuracy: median over {len(labels)} seeds not reached ({reached} of {len(labels)} reached)")
+        print(f"time-to-accuracy: median over {over} not reached ({reached} of {len(labels)} reached)")
     else:
-        print(f"time-to-accuracy: median over {len(labels)} seeds reached {target:.1f}% after {median[0]} updates, "
+        print(f"time-to-accuracy: median over {over} reached {target:.1f}% after {median[0]} updates, "
               f"{median[1]:.1f} minutes ({reached} of {len(labels)} reached)")
 
 

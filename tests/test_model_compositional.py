@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from gscan_ros.model.compositional import ModelConfig, antonym_overlap
-from gscan_ros.model.layout import Layout
+from gscan_ros.model.layout import COLUMN_MAJOR_MAX_WIDTH, Layout
 from gscan_ros.model.sparse_encoder import sparse_states
 
 from model_support import GRAPHS, SIZE_KEY, binary, chain, make_net, random_states, table, teacher_batch
@@ -30,6 +30,19 @@ def test_step_shapes_and_softmax_maps():
     for row, words in enumerate(rollout.words):
         for slot, _ in words:
             assert maps[row, slot].sum().item() == pytest.approx(1.0, abs=1e-5)
+
+
+def test_dropping_rows_keeps_the_built_projection_weights_and_their_layout():
+    net = make_net()  # levels of 10 columns (narrow) and 20 (wide)
+    bound = net.bind(net.layout(GRAPHS))
+    built = [bound.feat_w(level) for level in range(len(bound.blocks))]
+    narrow = [w.shape[2] <= COLUMN_MAJOR_MAX_WIDTH for w in built]
+    assert any(narrow) and not all(narrow)
+    rows = torch.tensor([len(GRAPHS) - 1, 0])
+    kept = bound.select(rows)
+    for w, carried, is_narrow in zip(built, kept._feat_w, narrow):
+        torch.testing.assert_close(carried, w.index_select(0, rows))
+        assert (carried.stride(1) == 1) == is_narrow  # column-major exactly where it was
 
 
 def test_parameter_count_matches_the_original():

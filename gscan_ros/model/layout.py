@@ -275,7 +275,7 @@ class Bound:
             n, k = units.shape
             w = self.bank.att_feat_w[units][:, :, : blk.children.shape[2]]  # [n, k, S_l, F, A]
             if k * w.shape[2] * w.shape[4] <= COLUMN_MAJOR_MAX_WIDTH:
-                self._feat_w[block] = w.transpose(3, 4).reshape(n, -1, w.shape[3]).transpose(1, 2)
+                self._feat_w[block] = w.transpose(3, 4).reshape(n, -1, w.shape[3]).contiguous().transpose(1, 2)
             else:
                 self._feat_w[block] = w.permute(0, 3, 1, 2, 4).reshape(n, w.shape[3], -1)
         return self._feat_w[block]
@@ -297,6 +297,7 @@ class Bound:
 
     def prefix(self, n: int) -> "Bound":
         return self if n == self.rows else self._map(lambda t: t[:n])
+
 
 def _select_rows_keeping_layout(w: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
     """`w.index_select(0, rows)` of a [n, F, W] tensor, column-major again if `w` is."""

@@ -1,8 +1,12 @@
-"""Shared by the benches: a dataset to measure on when `--data` is not given, and a fresh
-model with its training update on a dataset's batches."""
+"""Shared by the benches: a dataset to measure on when `--data` is not given, a fresh
+model with its training update on a dataset's batches, and a torchrun launch that stays
+on the loopback interface."""
 from __future__ import annotations
 
 import contextlib
+import os
+import socket
+import sys
 import tempfile
 from typing import Iterator
 
@@ -41,3 +45,16 @@ def training_update(data: str, config: str | None, batch_size: int, lr: float = 
     model = new_model(cfg, parser, lexicon, store)
     step = TrainStep(model, torch.optim.Adam(model.parameters(), lr=lr), store)
     return model, step, batch_order(store, batch_size, "mixed", np.random.default_rng(0))
+
+
+def loopback_torchrun(processes: int, threads: int) -> tuple[list[str], dict[str, str]]:
+    """(argv prefix, environment) that start `processes` ranks of `threads` torch threads
+    each with torchrun, rendezvous and gloo on 127.0.0.1 (a free port), nothing else."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    env = {**os.environ, "OMP_NUM_THREADS": str(threads)}
+    if os.path.isdir("/sys/class/net/lo"):
+        env["GLOO_SOCKET_IFNAME"] = "lo"
+    return ([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", str(processes),
+             "--master_addr", "127.0.0.1", "--master_port", str(port)], env)

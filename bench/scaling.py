@@ -14,14 +14,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import socket
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
-from _data import dataset_or_generated
+from _data import dataset_or_generated, loopback_torchrun
 
 LOG_EVERY = 10
 
@@ -61,15 +59,8 @@ def main() -> None:
         one, many = Path(tmp) / "one", Path(tmp) / "many"
         subprocess.run([sys.executable, *train_command(data, one, args.threads, args)], check=True,
                        stdout=subprocess.DEVNULL)
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            port = s.getsockname()[1]
-        env = {**os.environ, "OMP_NUM_THREADS": str(args.threads // args.processes)}
-        if os.path.isdir("/sys/class/net/lo"):
-            env["GLOO_SOCKET_IFNAME"] = "lo"
-        subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", str(args.processes),
-                        "--master_addr", "127.0.0.1", "--master_port", str(port),
-                        *train_command(data, many, args.threads // args.processes, args)],
+        torchrun, env = loopback_torchrun(args.processes, args.threads // args.processes)
+        subprocess.run([*torchrun, *train_command(data, many, args.threads // args.processes, args)],
                        check=True, env=env, stdout=subprocess.DEVNULL)
         single, parallel = rate(one), rate(many)
     print(f"1 process x {args.threads} threads:  {single:7.1f} examples/s")

@@ -39,11 +39,10 @@ def measure(data: str, mode: str, updates: int, warmup: int, threads: int, batch
     from gscan_ros.training.batches import EpisodeStore, batch_order
     from gscan_ros.training.config import TrainConfig
     from gscan_ros.training.step import TrainStep
-    from gscan_ros.training.trainer import iter_split, keep_freed_memory, new_model
+    from gscan_ros.training.trainer import iter_split, new_model
 
     configure_torch(threads)
     dev = resolve_device(device)
-    keep_freed_memory()
     torch.manual_seed(0)
     cfg = TrainConfig.load(config, overrides)
     ckpt = read_checkpoint(checkpoint) if checkpoint else None

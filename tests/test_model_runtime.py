@@ -1,6 +1,7 @@
 """Process-wide torch settings."""
 import torch
 
+from gscan_ros.model import runtime
 from gscan_ros.model.runtime import configure_torch
 
 
@@ -17,3 +18,15 @@ def test_configure_torch_flushes_denormals_and_sets_threads():
     finally:
         torch.set_flush_denormal(False)
         torch.set_num_threads(threads)
+
+
+def test_configure_torch_keeps_freed_memory(monkeypatch):
+    calls = []
+    monkeypatch.setattr(runtime, "keep_freed_memory", lambda: calls.append(True) or True)
+    threads = torch.get_num_threads()
+    try:
+        configure_torch(0)
+    finally:
+        torch.set_flush_denormal(False)
+        torch.set_num_threads(threads)
+    assert calls == [True]

@@ -4,6 +4,8 @@ torch is imported inside the functions, so the CLI can offer `DEVICES` without l
 """
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 from typing import TYPE_CHECKING
 
 from gscan_ros.errors import GscanError
@@ -14,8 +16,12 @@ if TYPE_CHECKING:
 DEVICES = ("auto", "cpu", "cuda")
 
 
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # glibc mallopt parameters
+
+
 def configure_torch(threads: int = 0) -> None:
-    """Set intra-op threads (0 = keep torch's default) and flush denormal floats to zero.
+    """Set intra-op threads (0 = keep torch's default), flush denormal floats to zero and
+    keep freed tensors in the heap (`keep_freed_memory`).
 
     A trained network's weights, activations and Adam moments drift into the denormal
     range (< 1.2e-38), where x86 float arithmetic is tens of times slower, and training
@@ -27,6 +33,26 @@ def configure_torch(threads: int = 0) -> None:
     if threads:
         torch.set_num_threads(threads)
     torch.set_flush_denormal(True)
+    keep_freed_memory()
+
+
+def keep_freed_memory(threshold: int = 1 << 30) -> bool:
+    """Let glibc keep freed tensors in the heap instead of returning them to the OS.
+
+    By default glibc serves large blocks with mmap (the threshold grows to at most 32 MB)
+    and unmaps or trims them on free, so the feature tensors of every training update and
+    closed-loop step are page-faulted in again (~30,000 minor faults per 2,048 evaluated
+    episodes; figures: docs/results.md, "Engine settings" and "Closed-loop evaluation
+    throughput"). Raising the mmap and trim thresholds makes those blocks reusable.
+    Returns False (and changes nothing) where the C library has no `mallopt` (non-glibc
+    platforms).
+    """
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):
+        return False
+    return bool(mallopt(_M_MMAP_THRESHOLD, threshold)) and bool(mallopt(_M_TRIM_THRESHOLD, threshold))
 
 
 def resolve_device(name: str | torch.device = "cpu", index: int = 0) -> torch.device:

@@ -7,8 +7,6 @@ state: the file to ship or evaluate).
 """
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
 import itertools
 import json
 import random
@@ -100,26 +98,6 @@ def seed_everything(seed: int) -> dict:
     np.random.seed(seed)
     torch.manual_seed(seed)
     return {"python": seed, "numpy": seed, "torch": seed}
-
-
-_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # glibc mallopt parameters
-
-
-def keep_freed_memory(threshold: int = 1 << 30) -> bool:
-    """Let glibc keep freed tensors in the heap instead of returning them to the OS.
-
-    By default glibc serves every block above 32 MB with mmap and unmaps it on free, so
-    each feature tensor of a training batch is page-faulted in again on every update
-    (its cost: docs/results.md, "Engine settings"). Raising the mmap and trim
-    thresholds makes those blocks reusable. Returns False (and changes nothing) where
-    the C library has no `mallopt` (non-glibc platforms).
-    """
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        mallopt = libc.mallopt
-    except (OSError, AttributeError):
-        return False
-    return bool(mallopt(_M_MMAP_THRESHOLD, threshold)) and bool(mallopt(_M_TRIM_THRESHOLD, threshold))
 
 
 def module_table(parser, lexicon: Lexicon, extra_graphs=()) -> ModuleTable:
@@ -249,7 +227,6 @@ class Run:
         self.cfg, self.files, self.ranks, self.on_validation = cfg, files, ranks, on_validation
         self.progress = progress and ranks.is_main
         configure_torch(cfg.threads)
-        keep_freed_memory()
         self.seeds = seed_everything(cfg.seed)
         self.lexicon = Lexicon.named(cfg.lexicon)
         from gscan_ros.language.registry import get_parser

@@ -1,9 +1,9 @@
-"""The allocator setting the trainer applies before training."""
+"""The allocator setting `configure_torch` applies wherever the model runs."""
 import platform
 
 import pytest
 
-from gscan_ros.training.trainer import keep_freed_memory
+from gscan_ros.model.runtime import keep_freed_memory
 
 
 @pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="mallopt thresholds are glibc-specific")

@@ -9,6 +9,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 WORDNET := /usr/share/wordnet/data.noun
+MKL_SHIM := $(VENV)/lib/libgscan_mkl_intel_cpu.so
 
 # DDS stays on loopback (mandatory on these machines); a distinct domain per run.
 export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
@@ -26,13 +27,18 @@ help:
 	@echo "make test-quick  the tests not marked slow, e2e or packaging (setup.cfg)"
 	@echo "make lint   ruff check (ruff.toml)"
 
-setup: $(STAMP) $(WORDNET)
+setup: $(STAMP) $(WORDNET) $(MKL_SHIM)
 
 $(STAMP): requirements.txt setup.py
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q -r requirements.txt 2>&1 | { grep -v "is ignored: it is neither" || true; }
 	$(PY) -m pip install -q --no-deps --no-build-isolation -e . 2>&1 | { grep -v "is ignored: it is neither" || true; }
 	touch $@
+
+# MKL's fast kernels on AMD CPUs for the runner's trainings (gscan_ros/model/runtime.py:
+# mkl_shim_env). Optional: without a C compiler MKL keeps its generic path.
+$(MKL_SHIM): gscan_ros/model/mkl_intel_cpu.c | $(STAMP)
+	cc -shared -fPIC -O2 -o $@ $< || echo "no C compiler: MKL keeps its generic path on AMD CPUs"
 
 $(WORDNET):
 	@if [ "$$(id -u)" = 0 ]; then SUDO=; else SUDO=sudo; fi; \

@@ -9,7 +9,9 @@ Without --data, a dataset of 6000 candidate examples is generated into a temp di
 (seed 0; gSCAN-length episodes, ~14 actions on average). Each mode runs in its own
 child process, so each peak RSS is that mode's alone (states cache included). The
 first `--warmup` updates (allocator and cache warm-up) are not timed; a timed update
-includes building the batch, forward, backward and the Adam step.
+includes building the batch, forward, backward and the Adam step. The children start
+as the experiment runner's trainings do: on AMD CPUs with the MKL vendor shim preloaded
+where `make setup` built it (`GSCAN_MKL_SHIM=0` measures without it).
 """
 from __future__ import annotations
 
@@ -20,7 +22,7 @@ import subprocess
 import sys
 import time
 
-from gscan_ros.model.runtime import DEVICES
+from gscan_ros.model.runtime import DEVICES, mkl_shim_env
 from gscan_ros.training.batches import BATCHING
 
 from _data import dataset_or_generated
@@ -35,7 +37,7 @@ def measure(data: str, mode: str, updates: int, warmup: int, threads: int, batch
     from gscan_ros.language.lexicon import Lexicon
     from gscan_ros.language.registry import get_parser
     from gscan_ros.model.checkpoint import checkpoint_lexicon, read_checkpoint, restore_model
-    from gscan_ros.model.runtime import configure_torch, resolve_device
+    from gscan_ros.model.runtime import configure_torch, mkl_shim_loaded, resolve_device
     from gscan_ros.training.batches import EpisodeStore, batch_order
     from gscan_ros.training.config import TrainConfig
     from gscan_ros.training.step import TrainStep
@@ -76,7 +78,7 @@ def measure(data: str, mode: str, updates: int, warmup: int, threads: int, batch
     return {"mode": mode, "device": str(dev), "threads": threads, "updates": updates, "examples": examples,
             "examples_per_s": examples / elapsed, "steps_per_s": steps / elapsed,
             "mean_batch": examples / updates, "mean_episode_steps": steps / examples,
-            "train_episodes": len(store), "state_cache_s": round(cache_s, 2),
+            "train_episodes": len(store), "state_cache_s": round(cache_s, 2), "mkl_shim": mkl_shim_loaded(),
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
 
 
@@ -119,11 +121,13 @@ def main() -> None:
                    "--device", args.device, *(["--config", args.config] if args.config else []),
                    *(["--checkpoint", args.checkpoint] if args.checkpoint else []),
                    *(arg for item in args.set for arg in ("--set", item))]
-            results[mode] = json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout)
+            results[mode] = json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True,
+                                                      env=mkl_shim_env()).stdout)
     for mode, r in results.items():
         print(f"{mode:12s} {r['examples_per_s']:7.1f} examples/s  ({r['steps_per_s']:.0f} steps/s, mean batch "
               f"{r['mean_batch']:.0f}, {r['mean_episode_steps']:.1f} steps/episode)  peak RSS {r['peak_rss_mb']:.0f} MB"
-              f"  [{r['device']}, threads {r['threads']}, state cache {r['state_cache_s']} s for "
+              f"  [{r['device']}, threads {r['threads']}, MKL shim {'on' if r['mkl_shim'] else 'off'}, "
+              f"state cache {r['state_cache_s']} s for "
               f"{r['train_episodes']} episodes]")
     ratio = results["mixed"]["examples_per_s"] / results["per_command"]["examples_per_s"]
     print(f"mixed / per_command throughput ratio: {ratio:.2f}")

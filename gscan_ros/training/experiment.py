@@ -40,6 +40,7 @@ import yaml
 
 from gscan_ros.data.splits import SPLIT_KINDS, TEST_SPLITS
 from gscan_ros.errors import GscanError
+from gscan_ros.model.runtime import mkl_shim_env
 from gscan_ros.training.config import read_yaml
 
 CLI = (sys.executable, "-m", "gscan_ros.cli")
@@ -813,7 +814,8 @@ class Runner:
         with open(log, "a") as out:
             out.write(f"# {time.strftime('%Y-%m-%d %H:%M:%S')} {shown}\n")
             out.flush()
-            proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+            proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                    env=mkl_shim_env())
             with self._guard:
                 self._children.add(proc)
                 if self._stop.is_set():  # stopped while it started: _terminate_children has its list already

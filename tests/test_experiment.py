@@ -13,6 +13,7 @@ import yaml
 
 from gscan_ros.cli import main
 from gscan_ros.cli.args import available_cpus
+from gscan_ros.model.runtime import MKL_SHIM, mkl_shim_env
 from gscan_ros.training.experiment import RunState, load_plan, resolve_config, work_order
 from gscan_ros.training.failures import FAILURE_KINDS
 from gscan_ros.training.paper_figures import TABLE1, TABLE2
@@ -72,6 +73,9 @@ def test_runner_generates_trains_and_evaluates_every_run(trained):
         assert not (run / ".lock").exists() and not (run / ".evaluation").exists()
     state = yaml.safe_load((root / "results/state_s0/config.yaml").read_text())
     assert state["model"]["message"] == "state"
+    # the trainings started as mkl_shim_env says (on AMD CPUs with the shim built: preloaded)
+    start = json.loads((root / "results/semantic_s0/metrics.jsonl").read_text().splitlines()[0])
+    assert start["event"] == "start" and start["mkl_shim"] == (MKL_SHIM in mkl_shim_env().get("LD_PRELOAD", ""))
 
 
 @pytest.mark.slow

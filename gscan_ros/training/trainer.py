@@ -26,7 +26,7 @@ from gscan_ros.language.lexicon import Lexicon
 from gscan_ros.model.checkpoint import build_model, checkpoint_dict, read_checkpoint, restore_model, save_checkpoint
 from gscan_ros.model.modules import ModuleTable
 from gscan_ros.model.policy import Policy
-from gscan_ros.model.runtime import configure_torch
+from gscan_ros.model.runtime import configure_torch, mkl_shim_loaded
 from gscan_ros.training import distributed
 from gscan_ros.training.batches import EpisodeStore, EpochCursor, iterate_batches, word_repeats
 from gscan_ros.training.config import ConfigError, TrainConfig
@@ -291,7 +291,7 @@ class Run:
             _append(self.files.metrics, {
                 "event": "start", "step": self.step, "seeds": self.seeds, "train_examples": len(self.store),
                 "dev_examples": len(self.dev_eps), "parameters": n_params, "resumed": resumed,
-                "world_size": ranks.world_size, "device": str(ranks.device),
+                "world_size": ranks.world_size, "device": str(ranks.device), "mkl_shim": mkl_shim_loaded(),
                 "data_load_s": round(time.time() - self.setup_started, 2), "config": self.cfg.to_dict()})
         self.started = time.time()
 

@@ -82,10 +82,11 @@ def mkl_shim_env(env: Mapping[str, str] | None = None, *, vendor: str | None = N
     torch's x86 CPU wheels do their float matmuls with MKL, and MKL runs a generic, slower
     code path on CPUs that are not Intel's. The shim (`mkl_intel_cpu.c`) makes MKL treat
     the CPU as Intel's and pick its kernels by the CPU's features. On an AMD EPYC (AVX2)
-    VM float32 products of [3,000 x 150] by [150 x 150] or [150 x 450] ran 1.8-2.1x faster at
-    1 thread (bench/matmul.py), and training updates 8-10 % faster (docs/results.md, "Engine settings"). A library has to be
-    preloaded when a process starts, hence an environment for the next one. Returned
-    unchanged for other vendors, where the shim was not built, or with GSCAN_MKL_SHIM=0.
+    VM, float32 products of [3,000 x 150] by [150 x 150] or [150 x 450] ran 1.8-2.1x
+    faster at 1 thread (bench/matmul.py), and training updates 8-10 % faster
+    (docs/results.md, "Engine settings"). A library has to be preloaded when a process
+    starts, hence an environment for the next one. Returned unchanged for other vendors,
+    where the shim was not built, or with GSCAN_MKL_SHIM=0.
     """
     out = dict(os.environ if env is None else env)
     shim = shim or Path(sys.prefix) / "lib" / MKL_SHIM

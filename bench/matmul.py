@@ -28,8 +28,6 @@ def measure(threads: int, repeats: int) -> dict:
     import numpy as np
     import torch
 
-    from gscan_ros.model.runtime import mkl_shim_loaded
-
     torch.set_num_threads(threads)  # numpy's OpenBLAS reads OPENBLAS_NUM_THREADS, set by the parent
 
     def rate(matmul, a, b, n: int) -> float:
@@ -40,7 +38,7 @@ def measure(threads: int, repeats: int) -> dict:
             matmul(a, b)
         return 2 * a.shape[0] * a.shape[1] * b.shape[1] * n / (time.perf_counter() - start) / 1e9
 
-    out = {"mkl_shim": mkl_shim_loaded(), "torch": {}, "numpy": {}}
+    out = {"torch": {}, "numpy": {}}
     for m, k, n in SHAPES:
         a, b = torch.randn(m, k), torch.randn(k, n)
         count = repeats if m * k * n < 1e8 else max(3, repeats // 40)

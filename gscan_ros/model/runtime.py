@@ -7,7 +7,6 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import os
-import platform
 import re
 import sys
 from pathlib import Path
@@ -91,9 +90,8 @@ def mkl_shim_env(env: Mapping[str, str] | None = None, *, vendor: str | None = N
     out = dict(os.environ if env is None else env)
     shim = shim or Path(sys.prefix) / "lib" / MKL_SHIM
     vendor = cpu_vendor() if vendor is None else vendor
-    preload = _preloads(out)
     if (out.get(MKL_SHIM_SWITCH, "1") == "0" or vendor != "AuthenticAMD" or not shim.is_file()
-            or platform.machine() not in ("x86_64", "AMD64") or str(shim) in preload):
+            or str(shim) in _preloads(out)):
         return out
     out["LD_PRELOAD"] = f"{out.get('LD_PRELOAD', '')} {shim}".strip()
     return out

@@ -101,6 +101,9 @@ def joined(device: str | torch.device = "cpu", backend: str | None = None) -> It
     dist.init_process_group(backend or ("nccl" if dev.type == "cuda" else "gloo"), timeout=TIMEOUT)
     try:
         yield Ranks(dist.get_rank(), dist.get_world_size(), dev)
+        # No rank tears its connections down while another still has a message in flight
+        # to it (not on an error: the other ranks may never get here).
+        dist.barrier()
     finally:
         # A DistributedDataParallel wrapper sits in reference cycles and keeps the group
         # alive; left to interpreter exit, its gloo threads abort the process

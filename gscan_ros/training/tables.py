@@ -552,7 +552,9 @@ def plot_curves(runs: list[RunResult], path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import FuncFormatter, MaxNLocator
 
+    thousands = FuncFormatter(lambda x, _: f"{x / 1000:g}k" if x else "0")
     tables = Tables(runs)
     groups = tables.groups
     ncols = min(4, len(groups))
@@ -565,6 +567,8 @@ def plot_curves(runs: list[RunResult], path: Path) -> None:
         ax.set_title(group.label, fontsize=9)
         ax.set_ylim(0, 100)
         ax.set_xlabel("updates", fontsize=8)
+        ax.xaxis.set_major_locator(MaxNLocator(5))
+        ax.xaxis.set_major_formatter(thousands)  # 160,000-update runs beside 40,000-update ones
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, loc="lower right")
     for ax in axes.flat[len(groups):]:

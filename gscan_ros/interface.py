@@ -32,11 +32,11 @@ class Qos:
 
 
 # What writers offer.
-LATCHED = Qos(1, durability=TRANSIENT_LOCAL)  # world-state-like topics (docs/ros.md)
-# The world simulator's state streams: latched, but the writer keeps the last 64 states,
-# because a reliable depth-1 writer drops a state a busy recorder has not acknowledged
-# yet when the policy steps fast (a few ms a step: docs/results.md). A depth-1 reader sees only the newest.
-LATCHED_STATE = Qos(64, durability=TRANSIENT_LOCAL)
+# World-state-like topics: the current state only. A late subscriber (a viewer, `ros2 topic
+# echo --once`) gets the newest sample and nothing stale; a reliable depth-1 writer may
+# replace a sample a busy reader has not taken yet, which costs a recorder nothing: bag
+# readers rebuild every state from the newest situation and the actions after it (docs/bags.md).
+LATCHED = Qos(1, durability=TRANSIENT_LOCAL)
 # Event streams: deep enough that a burst of 1000 rejected commands is reported in
 # full, bounded so a flood cannot grow memory.
 EVENTS = Qos(1000)
@@ -72,19 +72,24 @@ class Endpoint:
 
 COMMAND = Endpoint("command", TOPIC, "std_msgs/msg/String", EVENTS, recorded=True)
 COMMAND_GRAPH = Endpoint("command_graph", TOPIC, "std_msgs/msg/String", LATCHED, recorded=True)
-STATUS = Endpoint("status", TOPIC, "std_msgs/msg/String", EVENTS)
-OBSERVATION = Endpoint("observation", TOPIC, "std_msgs/msg/UInt8MultiArray", LATCHED_STATE, recorded=True)
-SITUATION = Endpoint("situation", TOPIC, "std_msgs/msg/String", LATCHED_STATE)
-WORLD_RESET = Endpoint("world_reset", TOPIC, "std_msgs/msg/Header", LATCHED)
-WORLD_IMAGE = Endpoint("world_image", TOPIC, "sensor_msgs/msg/Image", LATCHED_STATE, recorded=True)
+STATUS = Endpoint("status", TOPIC, "std_msgs/msg/String", EVENTS, recorded=True)
+OBSERVATION = Endpoint("observation", TOPIC, "std_msgs/msg/UInt8MultiArray", LATCHED, recorded=True)
+SITUATION = Endpoint("situation", TOPIC, "std_msgs/msg/String", LATCHED, recorded=True)
+WORLD_RESET = Endpoint("world_reset", TOPIC, "std_msgs/msg/Header", LATCHED, recorded=True)
+WORLD_IMAGE = Endpoint("world_image", TOPIC, "sensor_msgs/msg/Image", LATCHED, recorded=True)
 ACTION = Endpoint("action", TOPIC, "std_msgs/msg/String", EVENTS, recorded=True)
+# The policy's report on each episode: started, and how it ended (gscan_ros.data.episode_status).
+EPISODE_STATUS = Endpoint("episode_status", TOPIC, "actionlib_msgs/msg/GoalStatus", EVENTS, recorded=True)
+# What a bag knows of an episode beyond the live topics (split, example, dataset fields):
+# JSON written by the bag writers, keyed by the episode's status id (docs/bags.md).
+EPISODE = Endpoint("episode", TOPIC, "std_msgs/msg/String", EVENTS, recorded=True)
 ATTENTION = Endpoint("attention", TOPIC, "sensor_msgs/msg/Image", VIEWER)  # attention/<word>
 SIZE_ORDERING = Endpoint("attention/size_ordering", TOPIC, "sensor_msgs/msg/Image", VIEWER)
 RESET_WORLD = Endpoint("reset_world", SERVICE, "std_srvs/srv/Trigger", None)
 
 ENDPOINTS: tuple[Endpoint, ...] = (
     COMMAND, COMMAND_GRAPH, STATUS, OBSERVATION, SITUATION, WORLD_RESET, WORLD_IMAGE, ACTION,
-    ATTENTION, SIZE_ORDERING, RESET_WORLD,
+    EPISODE_STATUS, EPISODE, ATTENTION, SIZE_ORDERING, RESET_WORLD,
 )
 RECORDED: tuple[Endpoint, ...] = tuple(e for e in ENDPOINTS if e.recorded)
 

@@ -5,6 +5,7 @@ Every conversion of the nodes and of the bag code goes through here.
 from msg_adapters.action import action_to_msg, cdr_to_action, msg_to_action
 from msg_adapters.cdr import cdr_to_msg, cdr_to_string_bytes, msg_to_cdr
 from msg_adapters.command_graph import graph_to_msg, msg_to_graph
+from msg_adapters.episode_status import cdr_to_episode_status, episode_status_to_msg, msg_to_episode_status
 from msg_adapters.errors import MessageFormatError
 from msg_adapters.image import attention_to_msg, image_to_msg, msg_to_attention, msg_to_image
 from msg_adapters.observation import cdr_to_observation, msg_to_observation, observation_to_msg
@@ -17,15 +18,18 @@ __all__ = [
     "action_to_msg",
     "attention_to_msg",
     "cdr_to_action",
+    "cdr_to_episode_status",
     "cdr_to_msg",
     "cdr_to_observation",
     "cdr_to_string_bytes",
     "cdr_to_text",
+    "episode_status_to_msg",
     "graph_to_msg",
     "image_to_msg",
     "msg_to_action",
     "msg_to_attention",
     "msg_to_cdr",
+    "msg_to_episode_status",
     "msg_to_graph",
     "msg_to_image",
     "msg_to_observation",

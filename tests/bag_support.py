@@ -1,19 +1,39 @@
-"""Episodes for the bag tests: random but valid (walk / turn / stay, never off the grid), and
-damaged copies of bags (truncated, edited bytes, killed writer)."""
+"""Episodes for the bag tests: random but valid (walk / turn / stay, never off the grid),
+bags written by hand (format 1 as the writers before format 2 wrote it; a live stack as a
+recorder logs it), and damaged copies of bags (truncated, edited bytes, killed writer)."""
 from __future__ import annotations
 
+import json
 import os
 import random
 import signal
 import subprocess
 import sys
 import textwrap
+from contextlib import contextmanager
+from dataclasses import replace
 from pathlib import Path
+from typing import Iterator
 
 from mcap.reader import make_reader
+from std_msgs.msg import String
 
+from gscan_ros.data import episode_status as es
+from gscan_ros.data.bag import EPISODE_PERIOD_NS, LIVE_SPLIT, STEP_NS, BagWriter, legacy_header
+from gscan_ros.data.bag_metadata import EPISODE_FORMAT_VERSION
 from gscan_ros.data.episode import Episode
+from gscan_ros.language.graph import CommandGraph
 from gscan_ros.world.types import COLORS, SHAPES, Action, Heading, Position, Situation, WorldObject
+from gscan_ros.world.world import World
+from msg_adapters import (
+    action_to_msg,
+    episode_status_to_msg,
+    graph_to_msg,
+    msg_to_episode_status,
+    observation_to_msg,
+    situation_to_msg,
+    text_to_msg,
+)
 
 SPLITS = ("train", "test", "visual")
 TESTS = Path(__file__).parent
@@ -62,6 +82,128 @@ def make_episodes(count: int, seed: int = 0, max_len: int = 20) -> list[Episode]
     return [make_episode(rng, i, max_len) for i in range(count)]
 
 
+# ------------------------------------------------------------------ format-1 bags by hand
+@contextmanager
+def legacy_bag(bag_dir: Path) -> Iterator[BagWriter]:
+    """A BagWriter for a format-1 bag written by hand (`write_legacy_episode`): once closed,
+    its metadata.yaml says format_version 1, as the writers before format 2 did."""
+    with BagWriter(bag_dir) as writer:
+        yield writer
+    metadata = bag_dir / "metadata.yaml"
+    stamp = f"gscan_ros.format_version: '{EPISODE_FORMAT_VERSION}'"
+    text = metadata.read_text()
+    assert text.count(stamp) == 1, text
+    metadata.write_text(text.replace(stamp, "gscan_ros.format_version: '1'"))
+
+
+def write_legacy_episode(writer: BagWriter, episode: Episode, episode_id: int, *, tokens: list[str] | None = None,
+                         outcome: str | None = None, observations: bool = True) -> None:
+    """One episode as format 1 laid it out: its `/command` header at `episode_id` s, then
+    `/observation` t and `/action` t (half a step later) at +(t+1) ms; `tokens` default to
+    its actions and `<eos>`, `outcome` ("aborted") goes into the header."""
+    header = legacy_header(episode, episode_id)
+    if outcome is not None:
+        header["outcome"] = outcome
+    t0 = episode_id * EPISODE_PERIOD_NS
+    writer.write_message("/command", String(data=json.dumps(header)), t0)
+    states = episode.states()
+    for t, token in enumerate(tokens if tokens is not None else [*(a.token for a in episode.actions), "<eos>"]):
+        if observations and t < len(states):
+            writer.write_message("/observation", observation_to_msg(states[t]), t0 + (t + 1) * STEP_NS)
+        writer.write_message("/action", String(data=token), t0 + (t + 1) * STEP_NS + STEP_NS // 2)
+
+
+# ------------------------------------------------------------ a live stack, recorded
+class LiveStack:
+    """The messages of a running stack, for bags recorded by hand: the world's state after
+    every step, the typed command and its graph, the policy's reports and actions, each
+    published `step_ns` after the one before (real times); `record` logs them as a recorder
+    does: in the order they arrive."""
+
+    def __init__(self, situation: Situation, *, t0_ns: int = 1_700_000_000 * 10**9, step_ns: int = 1_000,
+                 namespace: str = "", policy: str = "/policy_node"):
+        self.world = World(situation)
+        self.now = t0_ns
+        self.step_ns = step_ns
+        self.namespace = namespace
+        self.policy = policy
+        self.episodes = 0
+        self.messages: list[tuple[str, object, int, int]] = []  # (topic, message, publish ns, log delay)
+
+    def publish(self, topic: str, msg, *, late_ns: int = 0) -> None:
+        self.now += self.step_ns
+        self.messages.append((f"{self.namespace}/{topic}", msg, self.now, late_ns))
+
+    def route(self, rng: random.Random, length: int) -> tuple[Action, ...]:
+        """Random actions the world can take from where it is (walks stay on the grid)."""
+        now = self.world.snapshot()
+        return _route(rng, now.agent_position, now.agent_direction, length)
+
+    def state(self, *, situation: bool = True) -> None:
+        """The world's state: its situation (unless the recorder missed it), then its observation."""
+        if situation:
+            self.publish("situation", situation_to_msg(self.world.snapshot()))
+        self.publish("observation", observation_to_msg(self.world.encode()))
+
+    def command(self, typed: str, graph: CommandGraph | None = None) -> None:
+        """A command typed as plain text, and the graph the parser made of it."""
+        self.publish("command", text_to_msg(typed))
+        if graph is not None:
+            self.publish("command_graph", graph_to_msg(graph))
+
+    def start(self) -> es.EpisodeStatus:
+        self.episodes += 1
+        report = es.EpisodeStatus(f"{self.policy}/{self.episodes}", self.now + self.step_ns, es.ACTIVE, "")
+        self.publish("episode_status", episode_status_to_msg(report))
+        return report
+
+    def act(self, action: Action, *, situation: bool = True, late_ns: int = 0) -> None:
+        """The policy's action and, but for `<eos>`, the world's new state."""
+        self.publish("action", action_to_msg(action), late_ns=late_ns)
+        if action is not Action.EOS:
+            self.world.step(action)
+            self.state(situation=situation)
+
+    def end(self, report: es.EpisodeStatus, outcome: str) -> None:
+        self.publish("episode_status", episode_status_to_msg(replace(report, outcome=outcome)))
+
+    def reject(self) -> None:
+        """The policy refuses the newest command graph: no episode starts."""
+        self.episodes += 1
+        report = es.EpisodeStatus(f"{self.policy}/{self.episodes}", self.now + self.step_ns, es.REJECTED, "refused")
+        self.publish("episode_status", episode_status_to_msg(report))
+
+    def episode(self, actions, outcome: str = es.COMPLETE, *, situations: bool = True) -> es.EpisodeStatus:
+        """The policy follows the newest command: ACTIVE, the actions, `<eos>` unless
+        preempted (forced at max_steps when cut), and how it ended."""
+        report = self.start()
+        for action in actions:
+            self.act(action, situation=situations)
+        if outcome in (es.COMPLETE, es.CUT):
+            self.act(Action.EOS)
+        self.end(report, outcome)
+        return report
+
+    def record(self, writer: BagWriter, *, recorder: bool = True) -> None:
+        """Write what a recorder logs: each message when it arrives (`late_ns` after its
+        publication), with its publish time; as our recorder does (an `/episode` record when
+        an episode starts, the ended ones counted), or as an all-topics recorder (`ros2 bag
+        record -a`) does (`recorder=False`)."""
+        arrivals = sorted((publish_ns + late_ns, publish_ns, topic, msg)
+                          for topic, msg, publish_ns, late_ns in self.messages)
+        for log_ns, publish_ns, topic, msg in arrivals:
+            writer.write_message(topic, msg, log_ns, publish_ns)
+            if not recorder or not topic.endswith("/episode_status"):
+                continue
+            report = msg_to_episode_status(msg)
+            if report.outcome != es.ACTIVE:
+                writer.count_episode(LIVE_SPLIT if report.outcome == es.COMPLETE else None)
+            else:
+                record = {"version": EPISODE_FORMAT_VERSION, "id": report.episode_id, "split": LIVE_SPLIT,
+                          "meta": {"recorded_by": "/episode_recorder_node"}}
+                writer.write_message("/episode", text_to_msg(json.dumps(record)), log_ns + 1, publish_ns)
+
+
 # ------------------------------------------------------------------------ damaged bags
 def mcap_file(bag: Path) -> Path:
     return bag / f"{bag.name}_0.mcap"
@@ -75,6 +217,32 @@ def copy_bag(src: Path, dst: Path, content: bytes) -> Path:
     )
     mcap_file(dst).write_bytes(content)
     return dst
+
+
+def messages_of(episode: Episode) -> int:
+    """A generated episode's messages: `/episode`, `/situation`, `/observation` 0, `/command`,
+    ACTIVE, its T+1 actions, the world's T replies and the end report."""
+    return 2 * (len(episode.actions) + 1) + 5
+
+
+def write_message_chunks(bag: Path, episodes: list[Episode]) -> Path:
+    """A closed bag of `episodes`, one message per chunk: damage costs exactly one message (`message_lost`)."""
+    with BagWriter(bag, chunk_size=1) as writer:
+        for episode in episodes:
+            writer.write_episode(episode)
+    return bag
+
+
+def message_lost(src: Path, dst: Path, t_ns: int) -> Path:
+    """A copy of `src` (one message per chunk: `chunk_size=1`) whose chunk holding the message
+    at `t_ns` is damaged."""
+    with open(mcap_file(src), "rb") as f:
+        [chunk] = [c for c in make_reader(f).get_summary().chunk_indexes if c.message_start_time == t_ns]
+
+    def flip(data):
+        data[chunk.chunk_start_offset + chunk.chunk_length // 2] ^= 0xFF
+
+    return damaged_copy(src, dst, flip)
 
 
 def truncated_copy(src: Path, dst: Path, keep: int) -> Path:

@@ -271,11 +271,13 @@ class ScriptedPolicy:
 
 
 def in_process_stack(probe: Probe, checkpoint: Path, script, *, max_steps: int | None = None,
-                     bag_dir: Path | None = None, on_step=None, seed: int = 3):
+                     bag_dir: Path | None = None, on_step=None, seed: int = 3, names: dict[str, str] | None = None):
     """A stack in the probe's context, spun in the background: world_simulator_node (`seed`,
     no images), parser_node (`checkpoint`), policy_node playing `script` (ScriptedPolicy)
     and, with `bag_dir`, episode_recorder_node. `max_steps` None keeps policy_node's default
-    (`gscan_ros.model.policy.MAX_STEPS`). Returns the nodes by name (and `policy`)."""
+    (`gscan_ros.model.policy.MAX_STEPS`); `names` renames nodes as `--ros-args -r
+    __node:=NAME` does (keys world, parser, policy_node, recorder). Returns the nodes by
+    name (and `policy`)."""
     from types import SimpleNamespace
 
     from gscan_ros.nodes.episode_recorder_node import EpisodeRecorderNode
@@ -285,18 +287,77 @@ def in_process_stack(probe: Probe, checkpoint: Path, script, *, max_steps: int |
 
     context = probe.context
     policy = ScriptedPolicy(script, on_step)
+    names = names or {}
+
+    def rename(key: str) -> dict:
+        return {"cli_args": ["--ros-args", "-r", f"__node:={names[key]}"]} if key in names else {}
+
     stack = SimpleNamespace(
         policy=policy,
-        world=WorldSimulatorNode(context=context, parameter_overrides=parameters(seed=seed, publish_images=False)),
-        parser=ParserNode(context=context, parameter_overrides=parameters(checkpoint=str(checkpoint))),
+        world=WorldSimulatorNode(context=context, parameter_overrides=parameters(seed=seed, publish_images=False),
+                                 **rename("world")),
+        parser=ParserNode(context=context, parameter_overrides=parameters(checkpoint=str(checkpoint)),
+                          **rename("parser")),
         policy_node=PolicyNode(policy, context=context, parameter_overrides=parameters(
-            **({} if max_steps is None else {"max_steps": max_steps}))),
+            **({} if max_steps is None else {"max_steps": max_steps})), **rename("policy_node")),
         recorder=None,
     )
     if bag_dir is not None:
-        stack.recorder = EpisodeRecorderNode(context=context, parameter_overrides=parameters(bag_dir=str(bag_dir)))
+        stack.recorder = EpisodeRecorderNode(context=context, parameter_overrides=parameters(bag_dir=str(bag_dir)),
+                                             **rename("recorder"))
     for node in (stack.world, stack.parser, stack.policy_node, stack.recorder):
         if node is not None:
             probe.executor.add_node(node)
     probe.spin_in_background()
     return stack
+
+
+class AllTopicsRecorder:
+    """What `ros2 bag record -a` does, written with the third-party `rosbags` library (no
+    gscan_ros code): every topic of the graph, discovered as it appears, subscribed with
+    the QoS its publishers offer (reliable, transient local when they all are), stored as
+    rosbag2 (metadata.yaml version 9, MCAP, CDR) at each message's DDS source timestamp,
+    which is the publish time Jazzy's recorder stores. Call `discover()` while the graph
+    forms and `close()` to finish the bag."""
+
+    def __init__(self, node: Node, path: Path):
+        from rosbags.rosbag2 import StoragePlugin, Writer
+        from rosbags.typesys import Stores, get_typestore
+
+        self.node = node
+        self.typestore = get_typestore(Stores.ROS2_JAZZY)
+        self.writer = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
+        self.writer.open()
+        self.connections: dict[str, object] = {}
+        self.messages = 0
+
+    def discover(self) -> None:
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+        for topic, types in self.node.get_topic_names_and_types():
+            if topic in self.connections or topic in ("/rosout", "/parameter_events"):
+                continue
+            offered = self.node.get_publishers_info_by_topic(topic)
+            if not offered:
+                continue
+            latched = all(i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for i in offered)
+            qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
+            if any(i.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT for i in offered):
+                qos.reliability = ReliabilityPolicy.BEST_EFFORT
+            msg_type = types[0]
+            connection = self.connections[topic] = self.writer.add_connection(topic, msg_type,
+                                                                             typestore=self.typestore)
+            package, _, name = msg_type.split("/")
+            msg_class = getattr(__import__(f"{package}.msg", fromlist=[name]), name)
+            self.node.create_subscription(msg_class, topic, self._sink(connection), qos, raw=True)
+
+    def _sink(self, connection):
+        def write(data: bytes, info: dict) -> None:
+            self.writer.write(connection, info["source_timestamp"], data)
+            self.messages += 1
+
+        return write
+
+    def close(self) -> None:
+        self.writer.close()

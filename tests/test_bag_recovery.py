@@ -9,10 +9,21 @@ from mcap.reader import make_reader
 from mcap.records import Message
 from mcap.stream_reader import StreamReader, breakup_chunk
 
-from gscan_ros.data.bag import EPISODE_PERIOD_NS, BagWriter, iter_bag_episodes, read_bag_info, write_bag
+from gscan_ros.data.bag import EPISODE_PERIOD_NS, STEP_NS, BagWriter, iter_bag_episodes, read_bag_info, write_bag
 from gscan_ros.errors import DatasetFormatError
 
-from bag_support import damaged_copy, data_end, kill_writer, make_episodes, mcap_file, truncated_copy
+from bag_support import (
+    copy_bag,
+    damaged_copy,
+    data_end,
+    kill_writer,
+    make_episodes,
+    mcap_file,
+    message_lost,
+    messages_of,
+    truncated_copy,
+    write_message_chunks,
+)
 
 
 @pytest.fixture(scope="module")
@@ -42,7 +53,7 @@ def test_truncated_file_yields_a_prefix_and_counts_the_loss(small_chunk_bag, epi
     assert report.episodes_read == len(recovered)
     assert report.lost_episodes == len(episodes) - len(recovered) > 0
     info = read_bag_info(small_chunk_bag)
-    kept = sum(1 + 2 * (len(e.actions) + 1) for e in recovered)
+    kept = sum(map(messages_of, recovered))
     assert report.lost_messages == info.message_count - kept
     assert "recovered" in caplog.text and "lost" in caplog.text
     if fraction >= 0.5:
@@ -116,7 +127,7 @@ def test_flipped_byte_loses_only_the_episodes_of_its_chunk(small_chunk_bag, epis
     assert not report.truncated
     if hit:
         assert report.corrupt and report.lost_chunks == 1 and len(report.corrupt_regions) == 1
-        assert report.lost_messages == sum(1 + 2 * (len(episodes[i].actions) + 1) for i in lost)
+        assert report.lost_messages == sum(messages_of(episodes[i]) for i in lost)
         assert "corrupt" in report.summary()
 
 
@@ -179,6 +190,40 @@ def test_killed_writer_with_a_damaged_first_chunk_recovers_the_rest(tmp_path):
     assert reader.report.corrupt and reader.report.truncated
 
 
+@pytest.fixture(scope="module")
+def message_chunks(tmp_path_factory, episodes):
+    return write_message_chunks(tmp_path_factory.mktemp("messages") / "bag", episodes[:6])
+
+
+def test_a_lost_episode_record_loses_its_episode(message_chunks, episodes, tmp_path):
+    """The damage takes only episode 2's `/episode` record (its split, example id, fields):
+    its situation, command and actions survive, but it is dropped, not read as a live one."""
+    bag = message_lost(message_chunks, tmp_path / "lost", 2 * EPISODE_PERIOD_NS)
+    reader = iter_bag_episodes(bag)
+    assert list(reader) == [e for i, e in enumerate(episodes[:6]) if i != 2]
+    report = reader.report
+    assert report.drop_reasons == {"its /episode record was lost": 1} and report.incomplete_episodes == 1
+    assert report.lost_episodes == 1 and report.lost_messages == messages_of(episodes[2])
+
+
+def test_an_episode_cut_by_lost_data_counts_once(message_chunks, episodes, tmp_path):
+    """A writer that died after damage mid-episode (no summary, metadata.yaml still
+    `recording`): the losses it reports are lower bounds, and count the cut episode once."""
+    middle = 3 * EPISODE_PERIOD_NS + 2 * STEP_NS  # episode 3's second action
+    assert len(episodes[3].actions) >= 2
+    damaged = message_lost(message_chunks, tmp_path / "damaged", middle)
+    bag = copy_bag(damaged, tmp_path / "unclosed", mcap_file(damaged).read_bytes()[: data_end(message_chunks)])
+    metadata = bag / "metadata.yaml"
+    metadata.write_text(metadata.read_text().replace("gscan_ros.status: closed", "gscan_ros.status: recording"))
+    reader = iter_bag_episodes(bag)
+    assert list(reader) == [e for i, e in enumerate(episodes[:6]) if i != 3]
+    report = reader.report
+    assert not report.exact and report.drop_reasons == {"cut by lost data": 1}
+    assert report.incomplete_episodes == report.lost_episodes == 1
+    assert report.lost_messages == messages_of(episodes[3])
+    assert "lost at least 1 episodes" in report.summary()
+
+
 @pytest.mark.parametrize("content", [b"", b"not an mcap file at all\n" * 10, b"\x89MCAP0\r\n" + bytes(3)])
 def test_not_an_mcap_file(small_chunk_bag, tmp_path, content):
     bag = truncated_copy(small_chunk_bag, tmp_path / "junk", 0)
@@ -192,7 +237,7 @@ def test_metadata_problems_name_the_file(small_chunk_bag, tmp_path):
         iter_bag_episodes(tmp_path)
     bag = truncated_copy(small_chunk_bag, tmp_path / "meta", 10)
     (bag / "metadata.yaml").write_text("rosbag2_bagfile_information: [unclosed")
-    with pytest.raises(DatasetFormatError, match="metadata.yaml: invalid YAML"):
+    with pytest.raises(DatasetFormatError, match="metadata.yaml is not valid YAML"):
         read_bag_info(bag)
     (bag / "metadata.yaml").write_text("rosbag2_bagfile_information: {version: 9}")
     with pytest.raises(DatasetFormatError, match="metadata.yaml: missing rosbag2 key 'storage_identifier'"):

@@ -5,18 +5,33 @@ import random
 from collections import Counter
 
 import pytest
+from actionlib_msgs.msg import GoalStatus
 from mcap.reader import make_reader
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 from std_msgs.msg import String
 
 from gscan_ros.cli import main
-from gscan_ros.data.bag import BagWriter, iter_bag_episodes, read_bag_info, repair_bag
+from gscan_ros.data.bag import EPISODE_PERIOD_NS, STEP_NS, BagWriter, iter_bag_episodes, read_bag_info, repair_bag
+from gscan_ros.data.bag_report import BagReadReport
+from gscan_ros.data.bag_scan import LOSS, McapScan
 from gscan_ros.errors import DatasetFormatError
 
-from bag_support import copy_bag, damaged_copy, data_end, kill_writer, make_episodes, mcap_file, truncated_copy
+from bag_support import (
+    copy_bag,
+    damaged_copy,
+    data_end,
+    kill_writer,
+    make_episodes,
+    mcap_file,
+    message_lost,
+    messages_of,
+    truncated_copy,
+    write_message_chunks,
+)
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+S = EPISODE_PERIOD_NS
 
 
 @pytest.fixture(scope="module")
@@ -56,6 +71,27 @@ def _messages(bag):
                 for _, c, m in make_reader(f).iter_messages(log_time_order=False)]
 
 
+def _readable(bag):
+    """`_messages` of a damaged bag: those the recovering scanner gets out of it."""
+    scan = McapScan(mcap_file(bag), BagReadReport(bag), read_bag_info(bag))
+    return [(c.topic, log, publish, sequence, data)
+            for c, sequence, log, publish, data in (i for i in scan.items() if i is not LOSS)]
+
+
+def _reports(bag):
+    """(episode id, GoalStatus code) of every `/episode_status` report, in file order (rosbags)."""
+    with Reader(bag) as reader:
+        connections = [c for c in reader.connections if c.topic == "/episode_status"]
+        return [(msg.goal_id.id, msg.status) for msg in (
+            TYPESTORE.deserialize_cdr(raw, c.msgtype) for c, _, raw in reader.messages(connections=connections))]
+
+
+def _reports_of(episode):
+    """Its ACTIVE and end reports, as a complete generated episode has them."""
+    episode_id = str(episode.meta["episode_id"])
+    return [(episode_id, GoalStatus.ACTIVE), (episode_id, GoalStatus.SUCCEEDED)]
+
+
 @pytest.mark.parametrize("kind", ["truncated", "flipped byte", "killed writer"])
 def test_repaired_bag_is_complete_and_opens_in_rosbags(kind, intact, episodes, tmp_path):
     source = _damaged(kind, intact, tmp_path)
@@ -86,28 +122,42 @@ def test_repaired_bag_is_complete_and_opens_in_rosbags(kind, intact, episodes, t
     assert summary.chunk_indexes and summary.statistics.message_count == result.messages == info.message_count
     assert mcap_file(out).read_bytes().endswith(b"\x89MCAP0\r\n")
 
-    # The third-party reader opens it and decodes every message.
-    commands = []
+    # The third-party reader opens it and decodes every message: each recovered episode's
+    # reports, record and situation are there (the prologues of episodes left out may be too).
+    records, situations = {}, {}
     with Reader(out) as bag:
         assert bag.message_count == result.messages
-        for connection, _, raw in bag.messages():
+        for connection, t, raw in bag.messages():
             msg = TYPESTORE.deserialize_cdr(raw, connection.msgtype)
-            if connection.topic == "/command":
-                commands.append(json.loads(msg.data))
-    assert [c["example_id"] for c in commands] == [e.example_id for e in recovered]
-    assert [c["situation"] for c in commands] == [e.situation.to_json() for e in recovered]
+            if connection.topic == "/episode":
+                records[json.loads(msg.data)["id"]] = json.loads(msg.data)
+            elif connection.topic == "/situation":
+                situations[t // S] = json.loads(msg.data)
+    assert _reports(out) == [r for e in recovered for r in _reports_of(e)]
+    assert [records[str(e.meta["episode_id"])]["example_id"] for e in recovered] == [e.example_id for e in recovered]
+    assert [situations[e.meta["episode_id"]] for e in recovered] == [e.situation.to_json() for e in recovered]
 
 
 @pytest.mark.parametrize("kind", ["truncated", "flipped byte"])
 def test_repair_keeps_channels_times_and_other_topics(kind, intact, tmp_path):
     source = _damaged(kind, intact, tmp_path)
     kept = {e.example_id for e in iter_bag_episodes(source)}
-    repair_bag(source, tmp_path / "repaired")
+    result = repair_bag(source, tmp_path / "repaired")
     original = _messages(intact)
-    # Episode messages: exactly those of the recovered episodes, bytes and times unchanged.
-    episode_topics = [m for m in original if m[0] != "/status" and m[1] // 1_000_000_000 in kept]
+    # Stack messages, bytes and times unchanged: those of the recovered episodes, and the
+    # readable prologues (what precedes an ACTIVE report) of the others; no piece of an
+    # episode from its ACTIVE report on, the tail after the damage included.
+    active = {}
+    for topic, t, *_ in original:
+        if topic == "/episode_status":
+            active.setdefault(t // S, t)
+    readable = [m for m in _readable(source) if m[0] != "/status"]
+    expected = [m for m in readable if m[1] // S in kept or m[1] < active[m[1] // S]]
     repaired = _messages(tmp_path / "repaired")
-    assert [m for m in repaired if m[0] != "/status"] == episode_topics
+    assert [m for m in repaired if m[0] != "/status"] == expected
+    assert result.dropped_messages == len(readable) - len(expected)
+    if kind == "flipped byte":
+        assert result.dropped_messages > 0  # the tail of the episode the damage cut
     # Other topics are copied whenever their chunk is intact, including after the damage.
     status = [m for m in repaired if m[0] == "/status"]
     assert status and set(status) <= set(original)
@@ -200,6 +250,30 @@ def test_random_damage_never_yields_a_wrong_episode(intact, episodes, tmp_path, 
         if len(recovered) < len(episodes):
             assert not reader.report.complete
         result = repair_bag(bag, tmp_path / f"r{trial}")
-        with Reader(tmp_path / f"r{trial}") as repaired:
-            assert sum(c.topic == "/command" for c, _, _ in repaired.messages()) == len(recovered)
-        assert list(iter_bag_episodes(tmp_path / f"r{trial}")) == recovered == list(iter_bag_episodes(result.info.path))
+        assert _reports(tmp_path / f"r{trial}") == [r for e in recovered for r in _reports_of(e)], trial
+        again = iter_bag_episodes(result.info.path)
+        assert list(again) == recovered and again.report.complete, trial
+
+
+@pytest.fixture(scope="module")
+def message_chunks(tmp_path_factory, episodes):
+    return write_message_chunks(tmp_path_factory.mktemp("messages") / "bag", episodes[:5])
+
+
+@pytest.mark.parametrize("lost, prologue", [
+    (2 * S, ["/situation", "/observation", "/command"]),  # episode 2's `/episode` record
+    (2 * S + 2 * STEP_NS, ["/episode", "/situation", "/observation", "/command"]),  # its second action
+], ids=["record", "action"])
+def test_repair_leaves_out_the_episode_damage_cut(message_chunks, episodes, tmp_path, lost, prologue):
+    """Of the episode the damage cut, only its readable prologue is copied: no piece from its
+    ACTIVE report on (its tail after the damage included), and the repaired bag reads whole."""
+    assert len(episodes[2].actions) >= 2
+    source = message_lost(message_chunks, tmp_path / "damaged", lost)
+    recovered = list(iter_bag_episodes(source))
+    assert recovered == [e for i, e in enumerate(episodes[:5]) if i != 2]
+    result = repair_bag(source, tmp_path / "repaired")
+    assert [m[0] for m in _messages(tmp_path / "repaired") if m[1] // S == 2] == prologue
+    assert result.dropped_messages == messages_of(episodes[2]) - 1 - len(prologue)
+    again = iter_bag_episodes(tmp_path / "repaired")
+    assert list(again) == recovered and again.report.complete
+    assert result.source.lost_episodes == 1 and result.source.incomplete_episodes == 1

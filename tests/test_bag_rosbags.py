@@ -3,10 +3,12 @@ import json
 
 import numpy as np
 import pytest
+from actionlib_msgs.msg import GoalStatus
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from gscan_ros.data.bag import write_bag
+from gscan_ros.data.bag_format import ACTION_DELAY_NS, EPISODE_PERIOD_NS, PROLOGUE_NS, STEP_NS
 from gscan_ros.data.bag_schema import TOPICS, message_definition
 
 from bag_support import make_episodes
@@ -27,25 +29,36 @@ def test_rosbags_accepts_metadata_and_lists_topics(recorded):
     steps = sum(len(e.actions) + 1 for e in episodes)
     with Reader(bag_dir) as reader:
         topics = {c.topic: (c.msgtype, c.msgcount) for c in reader.connections}
-        assert reader.message_count == len(episodes) + 3 * steps
+        assert reader.message_count == 5 * len(episodes) + 3 * steps
         assert all(c.msgdef.data for c in reader.connections)  # ros2msg schema text from the MCAP
         assert all(c.digest.startswith("RIHS01_") for c in reader.connections)
     assert topics == {
-        "/command": ("std_msgs/msg/String", len(episodes)),
+        "/episode": ("std_msgs/msg/String", len(episodes)),
+        "/situation": ("std_msgs/msg/String", len(episodes)),
         "/observation": ("std_msgs/msg/UInt8MultiArray", steps),
         "/world_image": ("sensor_msgs/msg/Image", steps),
+        "/command": ("std_msgs/msg/String", len(episodes)),
+        "/episode_status": ("actionlib_msgs/msg/GoalStatus", 2 * len(episodes)),
         "/action": ("std_msgs/msg/String", steps),
     }
 
 
 def test_rosbags_decodes_the_recorded_values(recorded):
+    """Every message, the policy's GoalStatus reports included, with the Jazzy typestore."""
     bag_dir, episodes = recorded
-    commands, observations, actions = [], [], []
+    records, situations, commands, reports, observations, actions, images = [], [], [], [], [], [], 0
     with Reader(bag_dir) as reader:
-        for connection, _, raw in reader.messages():
+        for connection, t, raw in reader.messages():
             msg = TYPESTORE.deserialize_cdr(raw, connection.msgtype)
-            if connection.topic == "/command":
-                commands.append(json.loads(msg.data))
+            if connection.topic == "/episode":
+                records.append(json.loads(msg.data))
+            elif connection.topic == "/situation":
+                situations.append(json.loads(msg.data))
+            elif connection.topic == "/command":
+                commands.append(msg.data)
+            elif connection.topic == "/episode_status":
+                stamp = msg.goal_id.stamp.sec * 1_000_000_000 + msg.goal_id.stamp.nanosec
+                reports.append((msg.goal_id.id, msg.status, stamp, t))
             elif connection.topic == "/observation":
                 assert [(d.label, d.size, d.stride) for d in msg.layout.dim] == [
                     ("row", 6, 576),
@@ -56,10 +69,21 @@ def test_rosbags_decodes_the_recorded_values(recorded):
             elif connection.topic == "/action":
                 actions.append(msg.data)
             else:
+                assert connection.topic == "/world_image"
                 assert (msg.encoding, msg.step) == ("rgb8", 3 * msg.width)
-    assert [c["command"] for c in commands] == [e.command for e in episodes]
-    assert [c["split"] for c in commands] == [e.split for e in episodes]
-    assert [c["situation"] for c in commands] == [e.situation.to_json() for e in episodes]
+                images += 1
+    assert [(r["id"], r["split"], r["example_id"], r["command"]) for r in records] == [
+        (str(i), e.split, e.example_id, e.command) for i, e in enumerate(episodes)]
+    assert situations == [e.situation.to_json() for e in episodes]
+    assert commands == [e.command for e in episodes]
+    # ACTIVE after the prologue, SUCCEEDED after `<eos>`: both stamped with the episode's start.
+    expected = []
+    for i, e in enumerate(episodes):
+        start = i * EPISODE_PERIOD_NS + 4 * PROLOGUE_NS
+        end = i * EPISODE_PERIOD_NS + (len(e.actions) + 1) * STEP_NS + ACTION_DELAY_NS
+        expected += [(str(i), GoalStatus.ACTIVE, start, start), (str(i), GoalStatus.SUCCEEDED, start, end)]
+    assert reports == expected
+    assert images == len(observations)
     assert np.array_equal(np.stack(observations), np.concatenate([e.states() for e in episodes]))
     assert actions == [tok for e in episodes for tok in [a.token for a in e.actions] + ["<eos>"]]
 

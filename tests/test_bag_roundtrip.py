@@ -1,19 +1,25 @@
-"""Bags written by write_bag / BagWriter read back as the same Episodes, in the documented layout."""
+"""Bags written by write_bag / BagWriter read back as the same Episodes, in the documented
+layout (format 2: the live topics with synthetic times); format-1 bags still read."""
 import json
 import random
+from pathlib import Path
 
 import numpy as np
 import pytest
 from mcap.reader import make_reader
-from std_msgs.msg import String
 
-from gscan_ros.data.bag import BagWriter, iter_bag_episodes, read_bag_info, write_bag
+from gscan_ros import interface
+from gscan_ros.data.bag import BagEpisodeReader, iter_bag_episodes, read_bag_info, write_bag
+from gscan_ros.data.bag_format import PROLOGUE_NS
 from gscan_ros.errors import DatasetFormatError
+from gscan_ros.language import get_parser
 from gscan_ros.world.world import World
 
-from bag_support import make_episodes
+from bag_support import legacy_bag, make_episodes, write_legacy_episode
 
 MS = 1_000_000
+S = 1000 * MS
+FIXTURE_V1 = Path(__file__).parent / "fixtures" / "bag_v1"  # written by the format-1 writer
 
 
 @pytest.fixture(scope="module")
@@ -28,8 +34,34 @@ def bag(tmp_path_factory, episodes):
     return bag_dir
 
 
-def _expected_messages(episodes):
-    return sum(1 + 2 * (len(e.actions) + 1) for e in episodes)
+def _messages_per_episode(episode):
+    """`/episode`, `/situation`, `/observation` 0, `/command`, ACTIVE, T+1 actions, T replies, the end."""
+    return 2 * (len(episode.actions) + 1) + 5
+
+
+def _stream(bag: Path):
+    """(topic, log time, publish time, decoded message) of every message, in file order."""
+    from mcap_ros2.decoder import DecoderFactory
+
+    with open(bag / f"{bag.name}_0.mcap", "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        return [(c.topic, m.log_time, m.publish_time, d) for _, c, m, d in reader.iter_decoded_messages()]
+
+
+def _state(observation) -> np.ndarray:
+    return np.frombuffer(bytes(observation.data), np.uint8).reshape([d.size for d in observation.layout.dim])
+
+
+def _layout(episode, t0, graph=False):
+    """(topic, time) of a generated episode's messages (docs/bags.md "Episodes")."""
+    prologue = ["/episode", "/situation", "/observation", "/command", *(["/command_graph"] if graph else []),
+                "/episode_status"]
+    layout = [(topic, t0 + k * PROLOGUE_NS) for k, topic in enumerate(prologue)]
+    for t in range(len(episode.actions) + 1):
+        layout.append(("/action", t0 + (t + 1) * MS))
+        if t < len(episode.actions):
+            layout.append(("/observation", t0 + (t + 1) * MS + MS // 2))
+    return layout + [("/episode_status", t0 + (len(episode.actions) + 1) * MS + MS // 2)]
 
 
 def test_round_trip_gives_identical_episodes(bag, episodes):
@@ -46,19 +78,23 @@ def test_split_filter_keeps_bag_order(bag, episodes):
 
 def test_metadata_describes_the_bag(bag, episodes):
     info = read_bag_info(bag)
-    assert info.version >= 5 and info.closed
+    assert info.version >= 5 and info.closed and info.format_version == 2
     assert [p.name for p in info.mcap_paths] == ["train_0.mcap"]
+    steps = sum(len(e.actions) + 1 for e in episodes)
     assert {t: (i.msg_type, i.message_count) for t, i in info.topics.items()} == {
+        "/episode": ("std_msgs/msg/String", len(episodes)),
+        "/situation": ("std_msgs/msg/String", len(episodes)),
+        "/observation": ("std_msgs/msg/UInt8MultiArray", steps),
         "/command": ("std_msgs/msg/String", len(episodes)),
-        "/observation": ("std_msgs/msg/UInt8MultiArray", sum(len(e.actions) + 1 for e in episodes)),
-        "/action": ("std_msgs/msg/String", sum(len(e.actions) + 1 for e in episodes)),
+        "/episode_status": ("actionlib_msgs/msg/GoalStatus", 2 * len(episodes)),
+        "/action": ("std_msgs/msg/String", steps),
     }
-    assert info.message_count == _expected_messages(episodes)
+    assert info.message_count == sum(map(_messages_per_episode, episodes))
     assert info.episodes == len(episodes)
     assert info.splits == {"train": 10, "test": 10, "visual": 10}
     assert info.start_ns == 0
     last = episodes[-1]
-    assert info.duration_ns == (len(episodes) - 1) * 1000 * MS + (len(last.actions) + 1) * MS + MS // 2
+    assert info.duration_ns == (len(episodes) - 1) * S + (len(last.actions) + 1) * MS + MS // 2
 
 
 def test_mcap_profile_encodings_and_zstd_chunks(bag):
@@ -68,53 +104,59 @@ def test_mcap_profile_encodings_and_zstd_chunks(bag):
     assert header.profile == "ros2"
     assert {c.message_encoding for c in summary.channels.values()} == {"cdr"}
     assert {s.encoding for s in summary.schemas.values()} == {"ros2msg"}
-    schema = next(s for s in summary.schemas.values() if s.name == "std_msgs/msg/UInt8MultiArray")
-    text = schema.data.decode()
-    assert "MSG: std_msgs/MultiArrayLayout" in text and "MSG: std_msgs/MultiArrayDimension" in text
+    schemas = {s.name: s.data.decode() for s in summary.schemas.values()}
+    assert "MSG: std_msgs/MultiArrayLayout" in schemas["std_msgs/msg/UInt8MultiArray"]
+    assert "MSG: std_msgs/MultiArrayDimension" in schemas["std_msgs/msg/UInt8MultiArray"]
+    assert "MSG: actionlib_msgs/GoalID" in schemas["actionlib_msgs/msg/GoalStatus"]
+    assert "MSG: builtin_interfaces/Time" in schemas["actionlib_msgs/msg/GoalStatus"]
     assert summary.chunk_indexes and {c.compression for c in summary.chunk_indexes} == {"zstd"}
     latched = {c.topic: "transient_local" in c.metadata["offered_qos_profiles"] for c in summary.channels.values()}
-    assert latched == {"/command": False, "/observation": True, "/action": False}
+    assert latched == {"/episode": False, "/situation": True, "/observation": True, "/command": False,
+                       "/episode_status": False, "/action": False}
 
 
 def test_offered_qos_is_what_the_live_stack_offers(bag):
     """metadata.yaml and the channels record the interface table's QoS (gscan_ros.interface)."""
     import yaml
 
-    from gscan_ros import interface
-
     info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
     with open(bag / "train_0.mcap", "rb") as f:
         channels = {c.topic: c.metadata for c in make_reader(f).get_summary().channels.values()}
+    assert len(info["topics_with_message_count"]) == len(channels) == 6
     for entry in info["topics_with_message_count"]:
         name, [qos] = entry["topic_metadata"]["name"], entry["topic_metadata"]["offered_qos_profiles"]
         offered = interface.endpoint_of(name).qos
         assert (qos["depth"], qos["reliability"], qos["durability"]) == (
             offered.depth, offered.reliability, offered.durability), name
         assert yaml.safe_load(channels[name]["offered_qos_profiles"]) == [qos]
-    assert interface.COMMAND.qos.depth == 1000 and interface.OBSERVATION.qos.depth == 64
+    assert interface.COMMAND.qos.depth == interface.EPISODE_STATUS.qos.depth == 1000
+    assert interface.OBSERVATION.qos == interface.SITUATION.qos == interface.Qos(1, durability="transient_local")
 
 
 def test_deterministic_times_and_step_order(bag, episodes):
-    with open(bag / "train_0.mcap", "rb") as f:
-        stream = [(c.topic, m.log_time, d) for _, c, m, d in _decoded(f)]
-    times = [t for _, t, _ in stream]
+    stream = _stream(bag)
+    times = [t for _, t, _, _ in stream]
     assert times == sorted(times) and len(set(times)) == len(times)
-    first = episodes[0]
-    expected = [("/command", 0)]
-    for t in range(len(first.actions) + 1):
-        expected += [("/observation", (t + 1) * MS), ("/action", (t + 1) * MS + MS // 2)]
-    assert [(topic, t) for topic, t, _ in stream[: len(expected)]] == expected
-    second = stream[len(expected)]
-    assert second[:2] == ("/command", 1000 * MS)
-    assert json.loads(second[2].data)["episode_id"] == 1
-    tokens = [d.data for topic, _, d in stream[: len(expected)] if topic == "/action"]
+    assert all(log == publish for _, log, publish, _ in stream)
+    first, second = episodes[:2]
+    expected = _layout(first, 0)
+    assert [(topic, t) for topic, t, _, _ in stream[: len(expected)]] == expected
+    assert [(topic, t) for topic, t, _, _ in stream[len(expected) : len(expected) + 7]] == _layout(second, S)[:7]
+    msgs = [d for _, _, _, d in stream[: len(expected)]]
+    assert json.loads(msgs[0].data) == {"version": 2, "id": "0", "episode_id": 0, "split": first.split,
+                                        "example_id": first.example_id, "command": first.command, "meta": {"n": 0}}
+    assert json.loads(msgs[1].data) == first.situation.to_json()
+    states = first.states()
+    assert np.array_equal(_state(msgs[2]), states[0])
+    assert msgs[3].data == first.command
+    active, end = msgs[4], msgs[-1]
+    assert (active.goal_id.id, active.status, end.goal_id.id, end.status) == ("0", 1, "0", 3)  # ACTIVE, SUCCEEDED
+    assert active.goal_id.stamp == end.goal_id.stamp and active.goal_id.stamp.nanosec == 4 * PROLOGUE_NS
+    tokens = [d.data for (topic, _), d in zip(expected, msgs) if topic == "/action"]
     assert tokens == [a.token for a in first.actions] + ["<eos>"]
-
-
-def _decoded(f):
-    from mcap_ros2.decoder import DecoderFactory
-
-    return make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages()
+    assert np.array_equal(np.stack([_state(d) for (topic, _), d in zip(expected, msgs) if topic == "/observation"]),
+                          states)
+    assert json.loads(stream[len(expected)][3].data)["id"] == "1"
 
 
 def test_writing_is_byte_for_byte_deterministic(tmp_path, episodes):
@@ -129,9 +171,13 @@ def test_world_images_are_optional_and_ignored_by_the_reader(tmp_path, episodes)
     info = read_bag_info(tmp_path / "img")
     assert info.topics["/world_image"].msg_type == "sensor_msgs/msg/Image"
     assert info.topics["/world_image"].message_count == sum(len(e.actions) + 1 for e in chosen)
+    assert info.message_count == sum(_messages_per_episode(e) + len(e.actions) + 1 for e in chosen)
     assert list(iter_bag_episodes(tmp_path / "img")) == chosen
-    with open(tmp_path / "img" / "img_0.mcap", "rb") as f:
-        image = next(d for _, c, _, d in _decoded(f) if c.topic == "/world_image")
+    stream = _stream(tmp_path / "img")
+    # Each image follows the observation of the same state, at its time.
+    assert [t for topic, t, _, _ in stream if topic == "/world_image"] == [
+        t for topic, t, _, _ in stream if topic == "/observation"]
+    image = next(d for topic, _, _, d in stream if topic == "/world_image")
     expected = World(chosen[0].situation).render()
     assert (image.encoding, image.height, image.width) == ("rgb8", *expected.shape[:2])
     assert np.array_equal(np.frombuffer(bytes(image.data), np.uint8).reshape(expected.shape), expected)
@@ -149,56 +195,6 @@ def test_writer_refuses_to_clobber_unless_told(tmp_path, episodes):
         write_bag(tmp_path / "other", episodes[:1], overwrite=True)
 
 
-def test_live_recording_with_real_times(tmp_path, episodes):
-    """A recorder writes message by message; a plain-text command (no header) is not an episode."""
-    from gscan_ros.data.bag import episode_header
-    from msg_adapters import action_to_msg, observation_to_msg
-
-    episode = episodes[4]
-    t = 1_700_000_000 * 10**9
-    with BagWriter(tmp_path / "live") as writer:
-        writer.write_message("/command", String(data="walk to a red circle"), t)
-        first = action_to_msg(episode.actions[0]) if episode.actions else String(data="stay")
-        writer.write_message("/action", first, t + 1)
-        header = json.dumps(episode_header(episode, 0))
-        writer.write_message("/command", String(data=header), t + 10)
-        for k, (state, action) in enumerate(zip(episode.states(), (*episode.actions, None))):
-            writer.write_message("/observation", observation_to_msg(state), t + 11 + 2 * k)
-            msg = action_to_msg(action) if action is not None else String(data="<eos>")
-            writer.write_message("/action", msg, t + 12 + 2 * k)
-            writer.write_message("/status", String(data="stepping"), t + 12 + 2 * k)
-        writer.flush()
-    reader = iter_bag_episodes(tmp_path / "live")
-    assert list(reader) == [episode]
-    assert reader.report.incomplete_episodes == 1 and reader.report.discarded_messages == 2
-    info = read_bag_info(tmp_path / "live")
-    assert info.start_ns == t and info.topics["/status"].msg_type == "std_msgs/msg/String"
-
-
-def test_observation_count_mismatch_is_a_format_error(tmp_path, episodes):
-    from gscan_ros.data.bag import episode_header
-    from msg_adapters import action_to_msg
-
-    episode = episodes[0]
-    with BagWriter(tmp_path / "bad") as writer:
-        writer.write_message("/command", String(data=json.dumps(episode_header(episode, 0))), 0)
-        for k, action in enumerate((*episode.actions, None)):
-            msg = action_to_msg(action) if action is not None else String(data="<eos>")
-            writer.write_message("/action", msg, k + 1)
-    with pytest.raises(DatasetFormatError, match="bad_0.mcap: episode 0: 0 observations"):
-        list(iter_bag_episodes(tmp_path / "bad"))
-
-
-def test_unknown_action_token_names_file_and_episode(tmp_path, episodes):
-    from gscan_ros.data.bag import episode_header
-
-    with BagWriter(tmp_path / "tok") as writer:
-        writer.write_message("/command", String(data=json.dumps(episode_header(episodes[0], 7))), 0)
-        writer.write_message("/action", String(data="jump"), 1)
-    with pytest.raises(DatasetFormatError, match=r"tok_0.mcap: episode 7: unknown action 'jump'"):
-        list(iter_bag_episodes(tmp_path / "tok"))
-
-
 def test_many_random_episodes_round_trip(tmp_path):
     chosen = make_episodes(200, seed=random.Random(5).randint(0, 1000), max_len=40)
     write_bag(tmp_path / "many", chosen)
@@ -207,15 +203,66 @@ def test_many_random_episodes_round_trip(tmp_path):
 
 def test_command_graphs_are_recorded_and_restored(tmp_path, episodes):
     from gscan_ros.errors import GraphError
-    from gscan_ros.language import get_parser
 
     parser = get_parser("semantic")
     chosen = episodes[:6]
     graphs = {e.command: parser.parse(e.command) for e in chosen}
     info = write_bag(tmp_path / "g", chosen, graphs=graphs)
     assert info.topics["/command_graph"].message_count == len(chosen)
+    assert info.message_count == sum(_messages_per_episode(e) + 1 for e in chosen)
+    expected = [m for i, e in enumerate(chosen) for m in _layout(e, i * S, graph=True)]
+    stream = _stream(tmp_path / "g")
+    assert [(topic, t) for topic, t, _, _ in stream] == expected
+    assert [json.loads(d.data) for topic, _, _, d in stream if topic == "/command_graph"] == [
+        json.loads(graphs[e.command].to_json()) for e in chosen]
     back = list(iter_bag_episodes(tmp_path / "g"))
     assert back == chosen
     assert [e.meta["command_graph"] for e in back] == [graphs[e.command] for e in chosen]
     with pytest.raises(GraphError, match="no command graph"):
         write_bag(tmp_path / "h", chosen, graphs={})
+
+
+# -- format 1 ------------------------------------------------------------------------------
+def test_a_format_1_bag_still_reads():
+    """tests/fixtures/bag_v1: make_episodes(4, seed=3, max_len=7) with their semantic graphs,
+    written by the format-1 writer (`/command` headers, no `/episode_status`)."""
+    episodes = make_episodes(4, seed=3, max_len=7)
+    assert read_bag_info(FIXTURE_V1).format_version == 1
+    reader = BagEpisodeReader(FIXTURE_V1, decode_states=True)
+    records = list(reader.records())
+    assert [r.episode for r in records] == episodes
+    assert [r.episode.meta["episode_id"] for r in records] == [0, 1, 2, 3]
+    assert [r.episode.meta["n"] for r in records] == [0, 1, 2, 3]
+    parser = get_parser("semantic")
+    assert [r.episode.meta["command_graph"] for r in records] == [parser.parse(e.command) for e in episodes]
+    for record, episode in zip(records, episodes):
+        assert np.array_equal(record.states, episode.states())
+    assert reader.report.complete and reader.report.episodes_read == 4 and reader.report.outcomes == {}
+    assert list(iter_bag_episodes(FIXTURE_V1, splits=["train"])) == [e for e in episodes if e.split == "train"]
+
+
+def test_format_1_aborted_episode_reads_as_preempted(tmp_path, episodes):
+    with legacy_bag(tmp_path / "v1") as writer:
+        write_legacy_episode(writer, episodes[0], 0)
+        write_legacy_episode(writer, episodes[1], 1, outcome="aborted")
+        write_legacy_episode(writer, episodes[2], 2)
+    reader = iter_bag_episodes(tmp_path / "v1")
+    assert list(reader) == [episodes[0], episodes[2]]
+    assert reader.report.outcomes == {"preempted": 1} and reader.report.complete
+    records = list(BagEpisodeReader(tmp_path / "v1", include_incomplete=True).records())
+    assert [(r.episode, r.outcome) for r in records] == [
+        (episodes[0], "complete"), (episodes[1], "preempted"), (episodes[2], "complete")]
+
+
+def test_format_1_observation_count_mismatch_is_a_format_error(tmp_path, episodes):
+    with legacy_bag(tmp_path / "bad") as writer:
+        write_legacy_episode(writer, episodes[0], 0, observations=False)
+    with pytest.raises(DatasetFormatError, match="bad_0.mcap: episode 0: 0 observations"):
+        list(iter_bag_episodes(tmp_path / "bad"))
+
+
+def test_format_1_unknown_action_token_names_file_and_episode(tmp_path, episodes):
+    with legacy_bag(tmp_path / "tok") as writer:
+        write_legacy_episode(writer, episodes[0], 7, tokens=["jump"])
+    with pytest.raises(DatasetFormatError, match=r"tok_0.mcap: episode 7: unknown action 'jump'"):
+        list(iter_bag_episodes(tmp_path / "tok"))

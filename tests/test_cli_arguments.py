@@ -35,6 +35,12 @@ BAD_ARGUMENTS = [
     ("generate --out {tmp}/g --examples 5 --cut-off-target-length 0", "--cut-off-target-length"),
     ("generate --out {file} --examples 5", "--out"),
     ("generate --out {file}/sub --examples 5", "--out"),
+    # augment
+    ("augment --data {missing} --out {tmp}/a --method geca", "--data"),
+    ("augment --data {data} --out {file} --method geca", "--out"),
+    ("augment --data {data} --out {tmp}/a --method eda", "--method"),
+    ("augment --data {data} --out {tmp}/a --method geca --examples 0", "--examples"),
+    ("augment --data {data} --out {tmp}/a --method geca --seed -1", "--seed"),
     # verify
     ("verify {missing}", "DATASET"),
     ("bag repair {missing} --out {tmp}/r", "BAG"),

@@ -125,13 +125,16 @@ def test_episode_runs_in_lock_step_until_eos(stack, episode):
 def test_the_commander_reports_a_refused_command_with_its_reason(stack, episode):
     result = stack.commander.run_episode("walk to a purple circle", timeout=30)
     assert result.outcome is Outcome.REJECTED and result.actions == []
-    assert result.reason.startswith("parser_node: rejected command 'walk to a purple circle'")
+    assert result.reason.startswith("rejected command 'walk to a purple circle'")
+    assert result.episode_id == "/parser_node/1"
 
 
 def check_recorded(bag_dir, command, actions):
-    reader = BagEpisodeReader(bag_dir, decode_states=True)
+    """The one episode with its outcome: cut when the policy stopped it at max_steps."""
+    reader = BagEpisodeReader(bag_dir, decode_states=True, include_incomplete=True)
     records = list(reader.records())
     assert len(records) == 1, reader.report.summary()
+    assert records[0].outcome == ("cut" if len(actions) - 1 == MAX_STEPS else "complete")
     recorded = records[0].episode
     assert recorded.command == command
     assert recorded.actions == tuple(actions[:-1])

@@ -120,8 +120,8 @@ def test_a_new_graph_preempts_and_waits_for_the_reply_to_the_last_action(probe):
     assert len(policy.seen) == 1  # the newest observation predates the in-flight walk
     node.on_observation(observation(), source_info())
     assert len(policy.seen) == 2
-    probe.spin_until(lambda: any("preempted 'walk to a red circle while spinning' after 1 actions" in s.data
-                                 for s in status), what="the preemption notice")
+    probe.spin_until(lambda: any("preempted: 'walk to a red circle while spinning': a new command came after 1 "
+                                 "actions" in s.data for s in status), what="the preemption notice")
 
 
 @pytest.mark.parametrize("data", ["{not json", '{"schema_version": 1}', ""])
@@ -142,6 +142,31 @@ def test_an_observation_of_another_grid_size_is_reported_and_not_acted_on(probe)
     assert policy.seen == []
     probe.spin_until(lambda: any("12x12 grid; the checkpoint was trained on 6x6" in s.data for s in status),
                      what="a rejection")
+
+
+def test_after_a_grid_size_mismatch_each_command_is_rejected_until_the_checkpoint_fits(probe):
+    """A world of another size than the checkpoint's: the running episode and every later
+    command end REJECTED with the reason (no episode waits forever); a checkpoint that fits
+    the world is followed from the next command on."""
+    from actionlib_msgs.msg import GoalStatus
+
+    from msg_adapters import msg_to_episode_status
+
+    reports = probe.record("episode_status", GoalStatus, EVENT_QOS)
+    node, policy = start(probe, [Action.WALK])
+    node.on_graph(graph(), source_info())
+    node.on_observation(observation_to_msg(np.zeros((12, 12, 16), dtype=np.uint8)), source_info())
+    node.on_graph(graph("walk to a circle"), source_info())
+    probe.spin_until(lambda: len(reports) == 3, what="three reports")
+    told = [msg_to_episode_status(r) for r in reports]
+    assert [r.outcome for r in told] == ["active", "rejected", "rejected"]
+    assert all("12x12 grid; the checkpoint was trained on 6x6" in r.text for r in told[1:])
+    assert policy.seen == [] and policy.resets == ["walk to a red circle while spinning"]
+    fitting = ScriptedPolicy([Action.WALK])
+    fitting.grid_size, fitting.observation_shape = 12, (12, 12, 16)
+    node._next_policy = fitting  # what an accepted `checkpoint` change installs for the next command
+    node.on_graph(graph("walk to a circle"), source_info())
+    assert fitting.resets == ["walk to a circle"] and len(fitting.seen) == 1
 
 
 def test_a_graph_of_another_parser_is_rejected(probe):
@@ -183,8 +208,8 @@ def test_a_world_reset_aborts_the_running_episode(probe):
     node.on_world_reset(world_reset(), source_info())
     node.on_observation(observation(1), source_info())  # the new world's first state
     assert len(policy.seen) == 1  # no action for the old command in the new world
-    probe.spin_until(lambda: any("aborted 'walk to a red circle while spinning' after 1 actions: the world was reset"
-                                 in s.data for s in status), what="the abort notice")
+    probe.spin_until(lambda: any("preempted: 'walk to a red circle while spinning': the world was reset after 1 "
+                                 "actions" in s.data for s in status), what="the abort notice")
     node.on_graph(graph("push a big square"), source_info())  # a new command starts in the new world
     assert len(policy.seen) == 2 and policy.seen[1][1, 0, 11] == 1
     probe.spin_until(lambda: len(actions) == 2, what="two walks")

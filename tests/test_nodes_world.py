@@ -180,3 +180,30 @@ def test_each_load_publishes_its_reset_time_before_the_new_state(probe, world):
     assert call_reset(probe).success
     probe.spin_until(lambda: len(resets) == 2 and len(observations) == 2, what="the reset and the new state")
     assert first < msg_to_reset(resets[1]) == node._reset_ns
+
+
+def test_a_late_subscriber_to_a_latched_topic_gets_only_the_current_world(probe, world):
+    """What `ros2 topic echo --once /situation` shows after steps and a reset: the new world,
+    one sample per latched topic, nothing stale (the writers keep depth 1)."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+    node, observations, _ = world
+    for action in (Action.WALK, Action.TURN_LEFT, Action.WALK):
+        node.on_action(String(data=action.token), source_info())
+    node.on_reset_world(Trigger.Request(), Trigger.Response())
+    current = node.world.snapshot()
+    echo_qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                          durability=DurabilityPolicy.TRANSIENT_LOCAL)  # what echo asks of a latched topic
+    late = {"situation": [], "observation": [], "world_reset": []}
+
+    def keep(topic):  # this test's world only (a participant of an earlier test may linger in the domain)
+        return lambda msg, info: late[topic].append(msg) if info["source_timestamp"] >= probe.created_ns else None
+
+    for topic, msg_type in (("situation", String), ("observation", UInt8MultiArray), ("world_reset", Header)):
+        probe.node.create_subscription(msg_type, topic, keep(topic), echo_qos)
+    probe.spin_until(lambda: all(late.values()), what="the latched samples")
+    for _ in range(25):  # anything else the writers still hold would arrive now
+        probe.executor.spin_once(timeout_sec=0.02)
+    assert [len(v) for v in late.values()] == [1, 1, 1]
+    assert json.loads(late["situation"][0].data) == current.to_json()
+    assert np.array_equal(msg_to_observation(late["observation"][0]), World(current).encode())

@@ -1,7 +1,7 @@
 """package.xml declares every third-party module the package and its tests import, under
-its rosdep key, so `rosdep install --from-paths` installs what the code needs; setup.py
-lists the same Python (non-ROS) ones for pip: run-time in install_requires, test-only in
-the `test` extra."""
+its rosdep key, so `rosdep install --from-paths` installs what the code needs; each key is
+rosdistro's or defined in rosdep/gscan_ros.yaml. setup.py lists the same Python (non-ROS)
+ones for pip: run-time in install_requires, test-only in the `test` extra."""
 import ast
 import re
 import sys
@@ -9,40 +9,42 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import pytest
+import yaml
 
 REPO = Path(__file__).resolve().parents[1]
-# Top-level import name -> rosdep key (ROS packages are their own key).
-ROSDEP_KEYS = {
+# Keys rosdep resolves from rosdistro itself, as checked in ros/rosdistro (2026-08-22):
+# the ROS 2 Jazzy packages of jazzy/distribution.yaml, which come from ROS, not from pip...
+ROS_PACKAGES = {"actionlib_msgs", "ament_index_python", "builtin_interfaces", "launch", "launch_ros",
+                "rcl_interfaces", "rclpy", "sensor_msgs", "std_msgs", "std_srvs"}
+# ...and the system keys of rosdep/python.yaml. python3-nltk, -zstandard, -lz4, wordnet-base
+# and any key for mcap are not there (nor in rosdep/base.yaml): rosdep/gscan_ros.yaml has them.
+ROSDISTRO_KEYS = ROS_PACKAGES | {
+    "mcap-ros2-support", "python3-hypothesis", "python3-matplotlib", "python3-numpy", "python3-pil",
+    "python3-pytest", "python3-rosbags-pip", "python3-setuptools", "python3-torch", "python3-tqdm", "python3-yaml",
+}
+# Top-level import name -> rosdep key (a ROS package is its own key).
+ROSDEP_KEYS = {package: package for package in ROS_PACKAGES} | {
     "PIL": "python3-pil",
-    "ament_index_python": "ament_index_python",
-    "builtin_interfaces": "builtin_interfaces",
     "hypothesis": "python3-hypothesis",
-    "launch": "launch",
-    "launch_ros": "launch_ros",
     "lz4": "python3-lz4",
     "matplotlib": "python3-matplotlib",
     "mcap": "python3-mcap-pip",
-    "mcap_ros2": "python3-mcap-ros2-support-pip",
+    "mcap_ros2": "mcap-ros2-support",
     "nltk": "python3-nltk",
     "numpy": "python3-numpy",
     "pytest": "python3-pytest",
-    "rcl_interfaces": "rcl_interfaces",
-    "rclpy": "rclpy",
     "rosbags": "python3-rosbags-pip",
-    "sensor_msgs": "sensor_msgs",
     "setuptools": "python3-setuptools",
-    "std_msgs": "std_msgs",
-    "std_srvs": "std_srvs",
     "torch": "python3-torch",
     "tqdm": "python3-tqdm",
     "yaml": "python3-yaml",
     "zstandard": "python3-zstandard",
 }
+ROSDEP_FILE = REPO / "rosdep" / "gscan_ros.yaml"
 RUNTIME_SOURCES = ("gscan_ros", "msg_adapters", "launch", "scripts")
 OWN = {"gscan_ros", "msg_adapters"}
 RUNTIME = ("exec_depend", "depend")
-# Import name -> pip distribution where they differ. ROS packages (rosdep key not python3-*)
-# come from ROS, not from pip.
+# Import name -> pip distribution where they differ.
 DISTRIBUTIONS = {"PIL": "pillow", "yaml": "pyyaml", "mcap_ros2": "mcap-ros2-support"}
 
 
@@ -64,9 +66,17 @@ def imported_modules(*roots: str) -> set[str]:
     return names - set(sys.stdlib_module_names) - OWN - local
 
 
+DEPENDENCY_TAGS = ("depend", "build_depend", "buildtool_depend", "build_export_depend", "exec_depend",
+                   "test_depend", "doc_depend")
+
+
 def declared(*tags: str) -> set[str]:
     root = ET.parse(REPO / "package.xml").getroot()
     return {element.text.strip() for tag in tags for element in root.iter(tag)}
+
+
+def rosdep_file() -> dict:
+    return yaml.safe_load(ROSDEP_FILE.read_text())
 
 
 @pytest.mark.parametrize("module", sorted(imported_modules(*RUNTIME_SOURCES)))
@@ -102,7 +112,7 @@ def setup_requirements() -> tuple[set[str], set[str]]:
 
 
 def pip_names(modules: set[str]) -> set[str]:
-    return {DISTRIBUTIONS.get(m, m).lower() for m in modules if ROSDEP_KEYS.get(m, "").startswith("python3-")}
+    return {DISTRIBUTIONS.get(m, m).lower() for m in modules if m not in ROS_PACKAGES}
 
 
 def test_setup_py_requires_the_python_imports_and_keeps_test_only_ones_in_the_test_extra():
@@ -110,3 +120,30 @@ def test_setup_py_requires_the_python_imports_and_keeps_test_only_ones_in_the_te
     runtime_imports = imported_modules(*RUNTIME_SOURCES)
     assert runtime == pip_names(runtime_imports)
     assert test == pip_names(imported_modules("tests") - runtime_imports)
+
+
+@pytest.mark.parametrize("key", sorted(declared(*DEPENDENCY_TAGS)))
+def test_every_rosdep_key_is_rosdistros_or_defined_in_the_rosdep_file(key):
+    assert key in ROSDISTRO_KEYS or key in rosdep_file(), f"{key}: not a rosdistro key; define it in {ROSDEP_FILE.name}"
+
+
+def test_rosdep_file_defines_only_keys_that_package_xml_uses_and_rosdistro_lacks():
+    defined = set(rosdep_file())
+    assert defined <= declared(*DEPENDENCY_TAGS)
+    assert not defined & ROSDISTRO_KEYS  # rosdistro defines these: its rules win (docs/ros.md)
+
+
+def test_rosdep_file_has_the_rosdep_structure():
+    """REP 111 rules: apt package lists for Debian and Ubuntu, pip (`{pip: {packages: [...]}}`)
+    for every other system (`'*'`); the pip packages are setup.py's requirements."""
+    runtime, test = setup_requirements()
+    for key, rules in rosdep_file().items():
+        assert isinstance(rules, dict) and rules and set(rules) <= {"debian", "ubuntu", "*"}, key
+        for os_name, rule in rules.items():
+            if os_name == "*":
+                assert list(rule) == ["pip"] and list(rule["pip"]) == ["packages"], key
+                packages = rule["pip"]["packages"]
+                assert {p.lower() for p in packages} <= runtime | test, key
+            else:
+                packages = rule
+            assert isinstance(packages, list) and packages and all(isinstance(p, str) for p in packages), key

@@ -19,6 +19,7 @@ from gscan_ros.errors import GscanError
 # Subcommand modules, in help order. A module missing here is simply not offered.
 SUBCOMMANDS = (
     "generate",
+    "augment",
     "verify",
     "render",
     "parse",

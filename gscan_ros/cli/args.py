@@ -11,7 +11,6 @@ import os
 from pathlib import Path
 from typing import Callable
 
-from gscan_ros.errors import GscanError
 from gscan_ros.model.runtime import DEVICES
 
 
@@ -113,7 +112,8 @@ def output_dir(text: str) -> Path:
 
 def output_file(*suffixes: str) -> Callable[[str], Path]:
     """A file to write, ending in one of `suffixes`, in a folder that exists; whether an
-    existing file may be replaced is `refuse_existing`'s call (it depends on --overwrite)."""
+    existing file may be replaced is `gscan_ros.outputs.check_targets`'s call (it depends
+    on --overwrite)."""
     def check(text: str) -> Path:
         path = Path(text)
         if path.suffix.lower() not in suffixes:
@@ -125,9 +125,3 @@ def output_file(*suffixes: str) -> Callable[[str], Path]:
         return path
 
     return check
-
-
-def refuse_existing(path: Path, overwrite: bool, flag: str = "--out") -> None:
-    """No silent replacement of a user's file: an existing one needs --overwrite."""
-    if path.exists() and not overwrite:
-        raise GscanError(f"{flag} {path} already exists; pass --overwrite to replace it")

@@ -46,11 +46,13 @@ def _check(validate, text: str, name: str):
 def run_repair(args: argparse.Namespace) -> int:
     from gscan_ros.data.bag import repair_bag
     from gscan_ros.errors import DatasetFormatError
+    from gscan_ros.outputs import claimed
 
     bag = _check(existing_path, args.bag, "BAG")
     out = _check(output_dir, args.out, "--out")
     try:
-        result = repair_bag(bag, out, overwrite=args.overwrite)
+        with claimed(out):
+            result = repair_bag(bag, out, overwrite=args.overwrite)
     except OSError as exc:  # unwritable destination, disk full ...
         raise DatasetFormatError(f"{out}: cannot write the repaired bag ({exc.strerror or exc})") from None
     source = result.source

@@ -51,9 +51,12 @@ def stack_options(args: argparse.Namespace, **overrides) -> StackOptions:
 
 
 def run(args: argparse.Namespace) -> int:
-    from gscan_ros.nodes.stack import Stack
+    import contextlib
 
-    with Stack(stack_options(args)) as stack:
+    from gscan_ros.nodes.stack import Stack
+    from gscan_ros.outputs import claimed
+
+    with claimed(args.record) if args.record else contextlib.nullcontext(), Stack(stack_options(args)) as stack:
         names = ", ".join(n.get_name() for n in stack.nodes)
         print(f"gscan-ros bringup: running {names}; Ctrl-C stops")
         stack.spin()

@@ -41,17 +41,26 @@ def register(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    from gscan_ros.outputs import claimed, refuse_links
+
+    out = args.out or DEFAULT_OUT_ROOT / time.strftime("%Y%m%d_%H%M%S")
+    if out.exists() and not out.is_dir():
+        raise GscanError(f"--out {out} is a file, not a directory")
+    with claimed(out):
+        if out.exists() and any(out.iterdir()) and not args.overwrite:
+            raise GscanError(f"--out {out} is not empty; pass --overwrite to replace an earlier demo there")
+        refuse_links([out / "bag", *(out / f"episode_{i}.gif" for i in range(1, args.episodes + 1))])
+        out.mkdir(parents=True, exist_ok=True)
+        return _run(args, out)
+
+
+def _run(args: argparse.Namespace, out: Path) -> int:
+    """The demo proper, writing into `out` (claimed)."""
     from gscan_ros.data.sources import episode_source
     from gscan_ros.nodes.commander import GscanCommander
     from gscan_ros.nodes.policy_node import PolicyNode
     from gscan_ros.nodes.stack import Stack
 
-    out = args.out or DEFAULT_OUT_ROOT / time.strftime("%Y%m%d_%H%M%S")
-    if out.exists() and not out.is_dir():
-        raise GscanError(f"--out {out} is a file, not a directory")
-    if out.exists() and any(out.iterdir()) and not args.overwrite:
-        raise GscanError(f"--out {out} is not empty; pass --overwrite to replace an earlier demo there")
-    out.mkdir(parents=True, exist_ok=True)
     options = stack_options(args, record=out / "bag", record_images=True)
     dataset = str(args.dataset) if args.dataset else ""
     source = episode_source(dataset, args.split, args.index, args.seed, args.grid_size)  # the world node's sequence
@@ -97,6 +106,7 @@ def _failure(episode, graph, result, planned) -> str:
 
 def _report(graph, episode, result, gif_path: Path) -> bool:
     """Print one episode (a GscanCommander EpisodeResult), write its GIF; True when the actions equal the planner's."""
+    from gscan_ros.outputs import replacing
     from gscan_ros.world import demonstrate
     from gscan_ros.world.render import render_frames, save_gif
     from msg_adapters import msg_to_attention
@@ -129,6 +139,7 @@ def _report(graph, episode, result, gif_path: Path) -> bool:
          for word, maps in result.attention.items() if t < len(maps)}
         for t in range(len(actions))
     ]
-    gif = save_gif(render_frames(episode.situation, actions, attention=attention), gif_path)
-    print(f"gif:      {gif}")
+    with replacing(gif_path) as tmp:
+        save_gif(render_frames(episode.situation, actions, attention=attention), tmp)
+    print(f"gif:      {gif_path}")
     return moves == gold

@@ -36,6 +36,7 @@ def register(subparsers) -> None:
                    help="seeded subset of N episodes per split (0 = all)")
     p.add_argument("--out", type=output_dir, default="runs/eval", metavar="DIR",
                    help="output directory (default: runs/eval)")
+    p.add_argument("--overwrite", action="store_true", help="replace the results of an earlier evaluation in DIR")
     p.add_argument("--batch-size", type=positive_int, default=1024, help="episodes decoded together (default: 1024)")
     p.add_argument("--no-predictions", action="store_true", help="skip predictions.json")
     p.add_argument("--attention", action="store_true",
@@ -48,6 +49,7 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import contextlib
     import time
 
     from gscan_ros.data.io import select_test_episodes
@@ -55,25 +57,27 @@ def run(args: argparse.Namespace) -> int:
     from gscan_ros.model.runtime import configure_torch
     from gscan_ros.training.distributed import joined
     from gscan_ros.training.evaluate import evaluate_episodes
-    from gscan_ros.training.report import markdown_table, write_reports
+    from gscan_ros.training.report import claim_report_dir, markdown_table, write_reports
 
     configure_torch(args.threads)
-    # The ranks only exchange predictions (Python objects): gloo, whatever the device.
-    with joined(args.device, backend="gloo") as ranks:
+    with contextlib.ExitStack() as held:
+        # The ranks only exchange predictions (Python objects): gloo, whatever the device.
+        ranks = held.enter_context(joined(args.device, backend="gloo"))
+        ranks.from_main(lambda: claim_report_dir(held, args.out, args.overwrite))  # rank 0 writes the reports
         policy = Policy.from_checkpoint(args.checkpoint, device=ranks.device)
         episodes = select_test_episodes(args.data, args.splits, args.max_examples, args.seed)
         start = time.time()
         result = evaluate_episodes(policy, episodes, batch_size=args.batch_size, ranks=ranks,
                                    record_attention=args.attention and not args.no_predictions,
                                    progress=not args.quiet and ranks.is_main)
-    if result is None:  # not rank 0: rank 0 has every prediction and writes the reports
-        return 0
-    seconds = time.time() - start
-    meta = {"checkpoint": str(args.checkpoint or default_checkpoint_path()), "parser": policy.parser_name,
-            "data": str(args.data), "max_examples": args.max_examples, "episodes": len(episodes),
-            "seconds": round(seconds, 2), "episodes_per_s": round(len(episodes) / max(seconds, 1e-9), 1),
-            "title": f"closed-loop evaluation of {args.checkpoint or 'the shipped model'}"}
-    write_reports(args.out, result, meta, predictions=not args.no_predictions)
+        if result is None:  # not rank 0: rank 0 has every prediction and writes the reports
+            return 0
+        seconds = time.time() - start
+        meta = {"checkpoint": str(args.checkpoint or default_checkpoint_path()), "parser": policy.parser_name,
+                "data": str(args.data), "max_examples": args.max_examples, "episodes": len(episodes),
+                "seconds": round(seconds, 2), "episodes_per_s": round(len(episodes) / max(seconds, 1e-9), 1),
+                "title": f"closed-loop evaluation of {args.checkpoint or 'the shipped model'}"}
+        write_reports(args.out, result, meta, predictions=not args.no_predictions)
     print(markdown_table(result.summary()), end="")
     print(f"{len(episodes)} episodes in {seconds:.1f} s; results in {args.out}/")
     return 0

@@ -17,7 +17,7 @@ The situation comes from `--data DS --split S --index I`, `--situation FILE.json
 from __future__ import annotations
 
 import argparse
-import json
+from pathlib import Path
 
 from gscan_ros.cli.args import (
     add_device_argument,
@@ -27,9 +27,9 @@ from gscan_ros.cli.args import (
     nonnegative_int,
     output_file,
     positive_int,
-    refuse_existing,
 )
 from gscan_ros.errors import GscanError
+from gscan_ros.user_files import read_json
 
 MAX_FPS = 50
 
@@ -80,10 +80,10 @@ def run(args: argparse.Namespace) -> int:
     configure_torch(args.threads)
     if args.metrics:
         return _metrics(args)
-    refuse_existing(args.out, args.overwrite)
-    if args.progression:
-        return _progression(args)
-    return _figure(args)
+    from gscan_ros.outputs import writing_file
+
+    with writing_file(args.out, overwrite=args.overwrite) as tmp:
+        return (_progression if args.progression else _figure)(args, tmp)
 
 
 def _check_combination(args: argparse.Namespace) -> None:
@@ -118,10 +118,7 @@ def _episode(args: argparse.Namespace, grid_size: int):
         same = args.command_text in (None, episode.command)
         return args.command_text or episode.command, episode.situation, list(episode.actions) if same else None
     if args.situation is not None:
-        try:
-            data = json.loads(args.situation.read_text(encoding="utf-8"))
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise GscanError(f"--situation {args.situation}: not readable JSON ({exc})") from None
+        data = read_json(args.situation, f"--situation {args.situation}", GscanError)
         situation = Situation.from_json(data["situation"] if isinstance(data, dict) and "situation" in data else data)
         return args.command_text, situation, None
     from gscan_ros.data.sources import sample_episode
@@ -147,7 +144,8 @@ def _model_name(args: argparse.Namespace, policy) -> str:
     return f"{name}, update {policy.metadata.get('step', '?')}"
 
 
-def _figure(args: argparse.Namespace) -> int:
+def _figure(args: argparse.Namespace, path: Path) -> int:
+    """Fig. 3 (one step) or its GIF, written to `path`."""
     from gscan_ros.model.policy import Policy
     from gscan_ros.training.explain import trace
     from gscan_ros.training.figures import figure_rgb, panel_titles, save_figure, step_figure
@@ -166,19 +164,20 @@ def _figure(args: argparse.Namespace) -> int:
             fig = step_figure(tr, t, title)
             frames.append(figure_rgb(fig))
             plt.close(fig)
-        save_gif(frames, args.out, fps=args.fps)
+        save_gif(frames, path, fps=args.fps)
         print(f"wrote {args.out}: {len(frames)} steps, panels: {', '.join(panel_titles(tr, 0))}")
         return 0
     if args.step >= len(tr.steps):
         raise GscanError(f"the model ended the episode (<eos>) at step {len(tr.steps) - 1}; "
                          f"--step must be at most {len(tr.steps) - 1}")
-    save_figure(step_figure(tr, args.step, title), args.out)
+    save_figure(step_figure(tr, args.step, title), path)
     print(f"wrote {args.out}: step {args.step} (next: {tr.steps[args.step].action.token}), "
           f"panels: {', '.join(panel_titles(tr, args.step))}")
     return 0
 
 
-def _progression(args: argparse.Namespace) -> int:
+def _progression(args: argparse.Namespace, path: Path) -> int:
+    """Fig. 4 (the maps along a training run), written to `path`."""
     from gscan_ros.model.policy import Policy
     from gscan_ros.training.explain import evenly, snapshots, trace
     from gscan_ros.training.figures import progression_figure, save_figure
@@ -186,8 +185,8 @@ def _progression(args: argparse.Namespace) -> int:
 
     paths = evenly(snapshots(args.progression), args.max_columns)
     columns, graph = [], None
-    for i, (update, path) in enumerate(paths):
-        policy = Policy.from_checkpoint(path, device=args.device)
+    for i, (update, checkpoint) in enumerate(paths):
+        policy = Policy.from_checkpoint(checkpoint, device=args.device)
         if i == 0:
             command, situation, actions = _setup(args, policy)
             if args.step and actions is None:
@@ -200,7 +199,7 @@ def _progression(args: argparse.Namespace) -> int:
         graph = tr.graph
     subtitle = (f"maps at step {args.step} along the training run {args.progression}: rows are words, columns "
                 "snapshots;\neach map scaled from its minimum to its maximum (noted: ~1/cells = uniform)")
-    save_figure(progression_figure(columns, graph, command, subtitle), args.out)
+    save_figure(progression_figure(columns, graph, command, subtitle), path)
     print(f"wrote {args.out}: {len(columns)} snapshots (updates {', '.join(str(u) for u, _ in paths)})")
     return 0
 

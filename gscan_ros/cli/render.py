@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import argparse
 
-from gscan_ros.cli.args import existing_path, float_in, int_in, nonnegative_int, output_file, refuse_existing
+from gscan_ros.cli.args import existing_path, float_in, int_in, nonnegative_int, output_file
 
 MAX_FPS = 50  # save_gif's shortest frame is 20 ms
 
@@ -31,14 +31,17 @@ def register(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     from gscan_ros.data.io import iter_episodes
     from gscan_ros.errors import GscanError
+    from gscan_ros.outputs import writing_file
     from gscan_ros.world.render import render_frames, save_gif, save_png
 
-    refuse_existing(args.out, args.overwrite)
-    episode = next((e for i, e in enumerate(iter_episodes(args.dataset, [args.split])) if i == args.index), None)
-    if episode is None:
-        raise GscanError(f"split {args.split!r} has no example {args.index}")
-    frames = render_frames(episode.situation, episode.actions, cell_px=args.cell_px)
-    is_gif = args.out.suffix.lower() == ".gif"
-    path = save_gif(frames, args.out, fps=args.fps) if is_gif else save_png(frames[0], args.out)
-    print(f"wrote {path}: {episode.command!r}, {len(episode.actions)} actions")
+    with writing_file(args.out, overwrite=args.overwrite) as tmp:
+        episode = next((e for i, e in enumerate(iter_episodes(args.dataset, [args.split])) if i == args.index), None)
+        if episode is None:
+            raise GscanError(f"split {args.split!r} has no example {args.index}")
+        frames = render_frames(episode.situation, episode.actions, cell_px=args.cell_px)
+        if args.out.suffix.lower() == ".gif":
+            save_gif(frames, tmp, fps=args.fps)
+        else:
+            save_png(frames[0], tmp)
+    print(f"wrote {args.out}: {episode.command!r}, {len(episode.actions)} actions")
     return 0

@@ -2,7 +2,9 @@
 
 Each complete episode of the bag is restarted from its recorded initial situation and
 command; the policy acts, the one World executes, and the produced action sequence
-is compared with the recorded one (exact match, overall and per split).
+is compared with the recorded one (exact match, overall and per split). Recorded
+episodes that did not end complete (cut, preempted, rejected) are counted and left out
+unless --include-incomplete.
 """
 from __future__ import annotations
 
@@ -26,6 +28,8 @@ def register(subparsers) -> None:
     parser.add_argument("--max-episodes", type=positive_int, default=None, help="replay only the first N episodes")
     parser.add_argument("--splits", nargs="+", default=None, metavar="SPLIT", help="only episodes of these splits")
     parser.add_argument("--batch-size", type=positive_int, default=64, help="episodes decoded together")
+    parser.add_argument("--include-incomplete", action="store_true",
+                        help="also replay recorded episodes that ended cut, preempted or rejected")
     parser.set_defaults(func=run)
 
 
@@ -35,7 +39,7 @@ def run(args: argparse.Namespace) -> int:
     from gscan_ros.training.evaluate import evaluate_episodes
     from gscan_ros.training.failures import failure_label
 
-    reader = iter_bag_episodes(args.bag, args.splits)
+    reader = iter_bag_episodes(args.bag, args.splits, include_incomplete=args.include_incomplete)
     episodes = list(itertools.islice(reader, args.max_episodes))
     if not episodes:
         raise DatasetFormatError(f"{args.bag}: no complete episodes to replay ({reader.report.summary()})")
@@ -49,6 +53,11 @@ def run(args: argparse.Namespace) -> int:
         failed = ", ".join(f"{n} {failure_label(kind)}" for kind, n in stats["failures"].items() if n)
         print(f"  {split:<16} {stats['exact_match']:6.2f}%  of {stats['examples']} episodes"
               + (f"  (failed: {failed})" if failed else ""))
-    if reader.report.lost_episodes and args.max_episodes is None:
-        print(f"warning: {reader.report.summary()}")
+    if args.max_episodes is None:
+        outcomes = reader.report.outcomes
+        if outcomes:
+            kept = "replayed" if args.include_incomplete else "left out"
+            print(f"{kept}: " + ", ".join(f"{n} {outcome}" for outcome, n in sorted(outcomes.items())))
+        if reader.report.lost_episodes:
+            print(f"warning: {reader.report.summary()}")
     return 0

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import argparse
 
-from gscan_ros.cli.args import existing_path, output_file, refuse_existing
+from gscan_ros.cli.args import existing_path, output_file
 
 
 def register(subparsers) -> None:
@@ -28,12 +28,17 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import contextlib
+
+    from gscan_ros.outputs import check_targets, claimed
     from gscan_ros.training.tables import write_report
 
     curves = None if args.no_curves else args.curves or args.out.with_name(f"{args.out.stem}_curves.png")
-    refuse_existing(args.out, args.overwrite)
-    if curves is not None:
-        refuse_existing(curves, args.overwrite, "--curves")
-    runs = write_report(args.dirs, args.out, curves)
+    with contextlib.ExitStack() as held:
+        for path, flag in ((args.out, "--out"), (curves, "--curves")):
+            if path is not None:
+                held.enter_context(claimed(path))
+                check_targets([path], overwrite=args.overwrite, flag=flag)
+        runs = write_report(args.dirs, args.out, curves)
     print(f"wrote {args.out} from {len(runs)} run(s)" + (f" and {curves}" if curves else ""))
     return 0

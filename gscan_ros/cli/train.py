@@ -1,4 +1,4 @@
-"""`gscan-ros train`: train a compositional network (or the seq2seq baseline) on a dataset."""
+"""`gscan-ros train`: train a compositional network (or a baseline: seq2seq, AuxLoss, LCGN) on a dataset."""
 from __future__ import annotations
 
 import argparse
@@ -28,6 +28,9 @@ def register(subparsers) -> None:
     mode.add_argument("--resume", action="store_true", help="continue from RUN_DIR/last.pt")
     mode.add_argument("--overwrite", action="store_true",
                       help="replace the run files already in RUN_DIR (refused without this flag)")
+    p.add_argument("--include-incomplete", action="store_true",
+                   help="also train on recorded episodes that did not end complete (cut at max_steps, "
+                        "preempted, rejected): no demonstrations, left out by default")
     add_device_argument(p)
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
@@ -38,7 +41,8 @@ def run(args: argparse.Namespace) -> int:
     from gscan_ros.training.distributed import joined
     from gscan_ros.training.trainer import train
 
-    cfg = TrainConfig.load(args.config, args.overrides)
+    overrides = [*args.overrides, *(["include_incomplete=true"] if args.include_incomplete else [])]
+    cfg = TrainConfig.load(args.config, overrides)
     with joined(args.device) as ranks:
         result = train(cfg, str(args.data), args.out, resume=args.resume, overwrite=args.overwrite,
                        progress=not args.quiet, device=ranks.device)

@@ -1,15 +1,21 @@
 """`gscan-ros verify`: replay every example's target actions and re-plan it.
 
 An example passes when its `target_commands` execute in the World without error and
-equal what `gscan_ros.world.demonstrate` plans for its command and situation. A bag
+equal what `gscan_ros.world.demonstrate` plans for its command and situation. A
+recorded live episode (split `live`) holds the policy's actions, not the planner's, so it
+is only replayed. Recorded episodes that did not end complete are counted by outcome. A bag
 that lost data (truncated or corrupt MCAP, episodes dropped) fails verification too,
-with one line per bag saying what was lost, unless `--allow-partial` accepts it.
+with one line per bag saying what was lost, unless `--allow-partial` accepts it. A
+per-split bag dataset that is incomplete (its manifest names a split without its bag) or
+lacks a split asked for is refused before anything is read, as dataset.txt is.
 """
 from __future__ import annotations
 
 import argparse
 
 from gscan_ros.cli.args import existing_path, nonnegative_int, positive_int
+from gscan_ros.data import episode_status as es
+from gscan_ros.data.bag_format import LIVE_SPLIT
 
 
 def register(subparsers) -> None:
@@ -28,6 +34,8 @@ def register(subparsers) -> None:
                    help="mismatches to print in full (default: 5)")
     p.add_argument("--allow-partial", action="store_true",
                    help="accept a bag that lost data (the loss is still printed; exit 0 unless a mismatch)")
+    p.add_argument("--include-incomplete", action="store_true",
+                   help="also check recorded episodes that ended cut, preempted or rejected (replay only)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -40,8 +48,8 @@ def _tokens(actions) -> str:
     return ",".join(a.token for a in actions)
 
 
-def check_episode(episode) -> str | None:
-    """None if the episode replays and matches the planner, else a one-line reason."""
+def check_episode(episode, *, replan: bool = True) -> str | None:
+    """None if the episode replays and (with `replan`) matches the planner, else a one-line reason."""
     from gscan_ros.errors import GscanError
     from gscan_ros.world import World, demonstrate
 
@@ -51,6 +59,8 @@ def check_episode(episode) -> str | None:
             world.step(action)
         except GscanError as exc:
             return f"replay fails at step {t} ({action.token}): {exc}"
+    if not replan:
+        return None
     try:
         planned = demonstrate(episode.situation, episode.command)
     except GscanError as exc:
@@ -70,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     splits = args.splits.split(",") if args.splits else None
-    readers = _bag_readers(args.dataset, splits)
+    readers = _bag_readers(args.dataset, splits, args.include_incomplete)
     if readers is None:
         from gscan_ros.data.io import iter_episodes
 
@@ -81,17 +91,28 @@ def run(args: argparse.Namespace) -> int:
     episodes = itertools.chain([first] if first is not None else [], episodes)
     if args.limit is not None:
         episodes = itertools.islice(episodes, args.limit)
-    checked = mismatches = 0
+    checked = mismatches = live = 0
     for episode in tqdm(episodes, unit="ex", desc="verify", disable=args.quiet):
         checked += 1
-        reason = check_episode(episode)
+        recorded = episode.split == LIVE_SPLIT or episode.meta.get("outcome", es.COMPLETE) != es.COMPLETE
+        live += recorded
+        reason = check_episode(episode, replan=not recorded)
         if reason is None:
             continue
         mismatches += 1
         if mismatches <= args.show:
             tqdm.write(f"MISMATCH example {episode.example_id} of split {episode.split!r}: "
                        f"{episode.command!r}: {reason}")
-    print(f"verified {checked} examples: {mismatches} mismatch(es)")
+    print(f"verified {checked} examples: {mismatches} mismatch(es)"
+          + (f" ({live} recorded episodes replayed, not re-planned)" if live else ""))
+    outcomes: dict[str, int] = {}
+    for reader in readers or []:
+        for outcome, n in reader.report.outcomes.items():
+            outcomes[outcome] = outcomes.get(outcome, 0) + n
+    if outcomes:
+        kept = "checked" if args.include_incomplete else "not checked"
+        print("episodes that did not end complete (" + kept + "): "
+              + ", ".join(f"{n} {outcome}" for outcome, n in sorted(outcomes.items())))
     losses = [_loss(reader) for reader in readers or []]
     losses = [line for line in losses if line]
     for line in losses:
@@ -103,18 +124,16 @@ def run(args: argparse.Namespace) -> int:
     return 1 if mismatches or (losses and not args.allow_partial) else 0
 
 
-def _bag_readers(dataset, splits):
-    """The readers of a bag or a directory of per-split bags (None for dataset.txt data)."""
+def _bag_readers(dataset, splits, include_incomplete: bool):
+    """The readers of a bag or a directory of per-split bags (None for dataset.txt data);
+    a split asked for and missing, or an incomplete dataset, is refused (`select_bags`)."""
     from gscan_ros.data.bag import iter_bag_episodes
-    from gscan_ros.data.io import is_bag, split_bags
+    from gscan_ros.data.io import select_bags
 
-    if is_bag(dataset):
-        return [iter_bag_episodes(dataset, splits, log_losses=False)]
-    bags = split_bags(dataset)
-    if not bags:
+    bags = select_bags(dataset, splits)
+    if bags is None:
         return None
-    return [iter_bag_episodes(bag, splits, log_losses=False)
-            for split, bag in bags.items() if splits is None or split in splits]
+    return [iter_bag_episodes(bag, splits, log_losses=False, include_incomplete=include_incomplete) for bag in bags]
 
 
 def _loss(reader) -> str | None:

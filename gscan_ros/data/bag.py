@@ -2,7 +2,8 @@
 
 The public bag API, gathered from the modules that implement it:
 
-- `bag_format`: the episode convention (the `/command` JSON header, outcomes, synthetic times);
+- `bag_format`: the episode conventions (format 2: the live topics; format 1: `/command` headers);
+- `episode_assembly`: the rule that cuts the live topics into episodes;
 - `bag_writer`: `BagWriter`, `write_bag` (generated datasets and live recordings);
 - `bag_reader`: `BagEpisodeReader`, `iter_bag_episodes` (Episodes back, with a `BagReadReport`);
 - `bag_scan`: `McapScan`, the record-by-record MCAP reader that recovers around damage;
@@ -17,15 +18,12 @@ from __future__ import annotations
 from gscan_ros.data.bag_format import (
     ACTION_DELAY_NS,
     EPISODE_PERIOD_NS,
-    EPISODE_TOPICS,
     LIVE_SPLIT,
-    OUTCOME_ABORTED,
-    OUTCOME_COMPLETE,
     READER_META_KEYS,
     STEP_NS,
     GraphCache,
     episode_from_header,
-    episode_header,
+    legacy_header,
 )
 from gscan_ros.data.bag_metadata import BagInfo, read_bag_info
 from gscan_ros.data.bag_reader import BagEpisodeReader, RecordedEpisode, iter_bag_episodes
@@ -38,10 +36,7 @@ __all__ = [
     "ACTION_DELAY_NS",
     "DEFAULT_CHUNK_SIZE",
     "EPISODE_PERIOD_NS",
-    "EPISODE_TOPICS",
     "LIVE_SPLIT",
-    "OUTCOME_ABORTED",
-    "OUTCOME_COMPLETE",
     "READER_META_KEYS",
     "STEP_NS",
     "BagEpisodeReader",
@@ -53,7 +48,7 @@ __all__ = [
     "RecordedEpisode",
     "RepairResult",
     "episode_from_header",
-    "episode_header",
+    "legacy_header",
     "iter_bag_episodes",
     "read_bag_info",
     "repair_bag",

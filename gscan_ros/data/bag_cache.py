@@ -25,6 +25,7 @@ from typing import Iterable
 
 import numpy as np
 
+from gscan_ros.data import episode_status as es
 from gscan_ros.data.bag_format import GraphCache, episode_from_header
 from gscan_ros.data.bag_metadata import CACHE_DIR, METADATA_FILE, read_bag_info
 from gscan_ros.data.bag_reader import BagEpisodeReader
@@ -34,7 +35,7 @@ from gscan_ros.world.types import Action
 
 log = logging.getLogger(__name__)
 
-CACHE_VERSION = 3
+CACHE_VERSION = 4  # 4: every outcome cached (headers' "outcome"), selected at load
 CACHE_FILE = "episodes.npz"
 _ACTIONS = tuple(Action)
 
@@ -139,11 +140,13 @@ def _cache_key(bag_dir: Path) -> str:
 
 
 def load_episode_cache(
-    bag_dir: str | os.PathLike, splits: Iterable[str] | None = None, *, rebuild: bool = False
+    bag_dir: str | os.PathLike, splits: Iterable[str] | None = None, *, rebuild: bool = False,
+    include_incomplete: bool = False,
 ) -> EpisodeCache:
     """Episodes and observations of a bag, decoded once and cached next to it.
 
-    `splits` selects after loading (the cache always holds the whole bag). A bag whose
+    `splits` selects after loading (the cache always holds the whole bag), and so does
+    `include_incomplete` (recorded episodes that ended cut, preempted or rejected). A bag whose
     directory is read-only is decoded without writing the cache (logged). An unreadable
     cache file is rebuilt (logged). If the bag was damaged or lost episodes when the
     cache was built, every call logs a warning saying how many (`cache.complete`,
@@ -164,12 +167,11 @@ def load_episode_cache(
             "`gscan-ros bag repair` writes what is left as a complete bag",
             bag_dir, bound, source["lost_episodes"], source["summary"],
         )
-    count = len(arrays["action_offsets"]) - 1
-    rows = np.arange(count)
-    if splits is not None:
-        wanted = frozenset(splits)
-        headers = json.loads(arrays["headers"].tobytes())
-        rows = np.asarray([r for r in rows if headers[r]["split"] in wanted], dtype=np.int64)
+    headers = json.loads(arrays["headers"].tobytes())
+    wanted = None if splits is None else frozenset(splits)
+    rows = np.asarray([r for r, h in enumerate(headers)
+                       if (wanted is None or h["split"] in wanted)
+                       and (include_incomplete or h.get("outcome", es.COMPLETE) == es.COMPLETE)], dtype=np.int64)
     return EpisodeCache(arrays, rows, str(bag_dir))
 
 
@@ -181,10 +183,14 @@ def _buffer(texts: list[bytes]) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _decode(bag_dir: Path, key: str) -> dict[str, np.ndarray]:
-    reader = BagEpisodeReader(bag_dir, decode_states=True, log_losses=False)  # load_episode_cache warns
+    reader = BagEpisodeReader(bag_dir, decode_states=True, log_losses=False,  # load_episode_cache warns
+                              include_incomplete=True)
     headers, situations, graphs, actions, action_offsets, states = [], [], [], [], [0], []
     for record in reader.records():
         header = dict(record.header)
+        header.pop("outcome", None)
+        if record.outcome != es.COMPLETE:
+            header["outcome"] = record.outcome
         situations.append(json.dumps(header.pop("situation"), separators=(",", ":")).encode())
         headers.append(header)
         graphs.append(record.graph_json or "")

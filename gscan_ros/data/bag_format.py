@@ -1,49 +1,60 @@
-"""The episode convention of gscan_ros bags: the `/command` header, outcomes, synthetic times.
+"""The episode conventions of gscan_ros bags, shared by the writer, the readers, the repair and the cache.
 
-An episode is the run of messages from one `/command` to its `<eos>` action
-(docs/bags.md "Episode convention"):
+Format 2 (docs/bags.md "Episodes"): a bag holds the live topics as the stack publishes
+them. The policy's `/episode_status` reports delimit episodes (ACTIVE, then how it
+ended); `/episode` carries what a bag adds to an episode (split, example id, the
+dataset's fields), keyed by the report's id. Generated data gets synthetic times:
+episode i at i s, its prologue (`/episode`, `/situation`, `/observation` 0, `/command`,
+`/command_graph`, ACTIVE) PROLOGUE_NS apart, action t at +(t+1) ms, the world's reply
+half a millisecond after it; live recordings keep their real times.
 
-- a `/command` message starts an episode; its String data is a JSON header
-  `{"version": 1, "episode_id", "split", "example_id", "command", "situation": <gSCAN
-  situation JSON>, "meta"}`;
-- optionally one `/command_graph` (CommandGraph JSON);
-- then for t = 0..T: `/observation` t (+ `/world_image` t), then `/action` t, where the
-  last action is `<eos>`, which closes the episode. A live episode that a world reset
-  ended is written the same way with `"outcome": "aborted"` in its header; readers skip
-  it (`include_aborted` to get it) and count it in `BagReadReport.aborted_episodes`.
-
-Generated data gets synthetic times (episode i at i s, step t at +(t+1) ms, the action
-half a millisecond after its observation); live recordings keep their real times.
-Shared by the writer, the reader, the repair and the decode cache.
+Format 1 (bags written before): a `/command` message carried a JSON header
+`{"version": 1, "episode_id", "split", "example_id", "command", "situation", "meta"}`
+(with `"outcome": "aborted"` for an episode a world reset ended), then optionally one
+`/command_graph`, then `/observation` t (+ `/world_image` t) and `/action` t for t =
+0..T, the last action `<eos>`. Readers still read it.
 """
 from __future__ import annotations
 
 from typing import Iterable
 
-from gscan_ros.data.bag_metadata import EPISODE_FORMAT_VERSION
+from gscan_ros.data.bag_metadata import EPISODE_FORMAT_VERSION, LEGACY_FORMAT_VERSION
 from gscan_ros.data.bag_schema import ACTION, COMMAND, COMMAND_GRAPH, OBSERVATION, WORLD_IMAGE
 from gscan_ros.data.episode import Episode
+from gscan_ros.data.episode_status import outcome_of
 from gscan_ros.errors import DatasetFormatError, GscanError
 from gscan_ros.language.graph import CommandGraph
 from gscan_ros.world.types import Action, Situation
 
-EPISODE_PERIOD_NS = 1_000_000_000  # generated episode i starts at i seconds
-STEP_NS = 1_000_000  # step t of an episode at +(t+1) ms
-ACTION_DELAY_NS = STEP_NS // 2  # an action follows its observation
-EPISODE_TOPICS = frozenset(t.name for t in (COMMAND, COMMAND_GRAPH, OBSERVATION, ACTION, WORLD_IMAGE))
-# Episode.meta keys the reader adds (not stored in the header, so re-writing is clean).
-READER_META_KEYS = frozenset({"episode_id", "command_graph"})
-# Header "outcome" (absent: complete). An aborted episode (a live one that the world's
-# reset ended) is framed like the others, its `<eos>` stamped when it ended, and is
-# skipped by readers unless asked for: it is no demonstration (docs/bags.md).
-OUTCOME_COMPLETE = "complete"
-OUTCOME_ABORTED = "aborted"
+EPISODE_PERIOD_NS = 1_000_000_000  # generated episode i starts at i s
+STEP_NS = 1_000_000  # action t of an episode at +(t+1) ms
+PROLOGUE_NS = 1_000  # the messages before an episode's first action, this far apart
+ACTION_DELAY_NS = STEP_NS // 2  # the world's reply follows the action
+# The episode topics of format 1 (what its readers count as lost when cut by damage).
+LEGACY_EPISODE_TOPICS = frozenset(t.name for t in (COMMAND, COMMAND_GRAPH, OBSERVATION, ACTION, WORLD_IMAGE))
+# Episode.meta keys the reader adds (not stored in a bag, so re-writing is clean).
+READER_META_KEYS = frozenset({"episode_id", "command_graph", "outcome"})
+LIVE_SPLIT = "live"  # the split of recorded episodes that no dataset names
 
 
-def episode_header(episode: Episode, episode_id: int, outcome: str = OUTCOME_COMPLETE) -> dict:
-    """The JSON header a `/command` message carries (module docstring)."""
-    header = {
+def episode_record(episode: Episode, status_id: str, episode_id: int) -> dict:
+    """What `/episode` says of a generated episode (module docstring): the reader joins it
+    to the episode whose `/episode_status` reports carry `status_id`."""
+    return {
         "version": EPISODE_FORMAT_VERSION,
+        "id": status_id,
+        "episode_id": episode_id,
+        "split": episode.split,
+        "example_id": episode.example_id,
+        "command": episode.command,
+        "meta": {k: v for k, v in episode.meta.items() if k not in READER_META_KEYS},
+    }
+
+
+def legacy_header(episode: Episode, episode_id: int) -> dict:
+    """The format-1 `/command` header of a complete episode (tests write old bags with it)."""
+    return {
+        "version": LEGACY_FORMAT_VERSION,
         "episode_id": episode_id,
         "split": episode.split,
         "example_id": episode.example_id,
@@ -51,13 +62,12 @@ def episode_header(episode: Episode, episode_id: int, outcome: str = OUTCOME_COM
         "situation": episode.situation.to_json(),
         "meta": {k: v for k, v in episode.meta.items() if k not in READER_META_KEYS},
     }
-    if outcome != OUTCOME_COMPLETE:
-        header["outcome"] = outcome
-    return header
 
 
 def episode_from_header(header: dict, actions: Iterable[Action], where: str) -> Episode:
-    """Rebuild an Episode from its `/command` header and recorded actions (EOS excluded)."""
+    """Rebuild an Episode from an episode header (format 1's `/command` JSON, or what the
+    format-2 reader assembles) and its actions (EOS excluded); a recorded outcome other
+    than complete goes to `meta["outcome"]`."""
     try:
         episode_id = header["episode_id"]
         return Episode(
@@ -66,7 +76,8 @@ def episode_from_header(header: dict, actions: Iterable[Action], where: str) -> 
             actions=tuple(actions),
             split=header["split"],
             example_id=header.get("example_id"),
-            meta={**(header.get("meta") or {}), "episode_id": episode_id},
+            meta={**(header.get("meta") or {}), "episode_id": episode_id,
+                  **({"outcome": outcome_of(header["outcome"])} if "outcome" in header else {})},
         )
     except KeyError as exc:
         raise DatasetFormatError(f"{where}: episode header lacks field {exc}") from None
@@ -91,18 +102,3 @@ class GraphCache:
             except GscanError as exc:
                 raise DatasetFormatError(f"{where}: command_graph: {exc}") from None
         episode.meta["command_graph"] = graph
-
-
-LIVE_SPLIT = "live"  # the split of episodes a live recorder writes
-
-
-def live_episode(graph: CommandGraph, situation: Situation, actions: Iterable[Action], *, recorded_by: str,
-                 aborted_because: str | None = None) -> Episode:
-    """A recorded live episode: the command the policy followed (the graph's canonical one;
-    the typed text goes to `meta.typed_command`), from `situation`, in split `live`."""
-    meta = {"parser": graph.parser, "recorded_by": recorded_by}
-    if graph.typed is not None:
-        meta["typed_command"] = graph.typed
-    if aborted_because is not None:
-        meta["aborted_because"] = aborted_because
-    return Episode(command=graph.command, situation=situation, actions=tuple(actions), split=LIVE_SPLIT, meta=meta)

@@ -16,14 +16,19 @@ from pathlib import Path
 import yaml
 
 from gscan_ros.data.bag_schema import YamlDumper, offered_qos, type_hash
-from gscan_ros.errors import DatasetFormatError
+from gscan_ros.errors import DatasetFormatError, quoted, shortened
+from gscan_ros.user_files import read_yaml
 
 METADATA_FILE = "metadata.yaml"
 CACHE_DIR = ".cache"  # the decode-once episode cache beside a bag (bag_cache.py)
 ROSBAG2_VERSION = 9
 STORAGE_ID = "mcap"
 EPISODE_FORMAT = "gscan_ros/episodes"
-EPISODE_FORMAT_VERSION = 1
+# 1: `/command` carried a JSON episode header, `<eos>` closed every episode.
+# 2: the live topics as they are; the policy's `/episode_status` delimits episodes and
+#    `/episode` carries what a bag adds (docs/bags.md). Bags without our metadata read as 2.
+EPISODE_FORMAT_VERSION = 2
+LEGACY_FORMAT_VERSION = 1
 STATUS_RECORDING = "recording"
 STATUS_CLOSED = "closed"
 
@@ -54,12 +59,24 @@ class BagInfo:
         return self.custom.get("gscan_ros.status", STATUS_CLOSED) != STATUS_RECORDING
 
     @property
+    def publish_ordered(self) -> bool:
+        """Our writer stored every message in publish-time order (readers need not reorder)."""
+        return self.custom.get("gscan_ros.publish_ordered") == "true"
+
+    @property
+    def format_version(self) -> int:
+        """The episode format (2 for bags that are not ours: the live topics)."""
+        return int(self.custom.get("gscan_ros.format_version", EPISODE_FORMAT_VERSION))
+
+    @property
     def episodes(self) -> int | None:
-        """Number of episodes (one `/command` each), when the writer closed the bag."""
-        if not self.closed:
+        """Number of episodes that ended (every outcome), when our writer closed the bag."""
+        if not self.closed or "gscan_ros.format" not in self.custom:
             return None
-        command = self.topics.get("/command")
-        return command.message_count if command else 0
+        if self.format_version == LEGACY_FORMAT_VERSION:  # one `/command` each
+            command = self.topics.get("/command")
+            return command.message_count if command else 0
+        return int(self.custom.get("gscan_ros.episodes", "0"))
 
     @property
     def splits(self) -> dict[str, int]:
@@ -134,10 +151,10 @@ def read_bag_info(bag_dir: str | os.PathLike) -> BagInfo:
     if not path.is_file():
         raise DatasetFormatError(f"{bag_dir}: not a rosbag2 bag (no {METADATA_FILE})")
     try:
-        info = yaml.safe_load(path.read_text(encoding="utf-8"))["rosbag2_bagfile_information"]
+        info = read_yaml(path, str(path), DatasetFormatError)["rosbag2_bagfile_information"]
         storage = info["storage_identifier"]
         if storage != STORAGE_ID:
-            raise DatasetFormatError(f"{path}: storage {storage!r} is not supported (only {STORAGE_ID!r})")
+            raise DatasetFormatError(f"{path}: storage {quoted(storage)} is not supported (only {STORAGE_ID!r})")
         if info.get("compression_mode") not in (None, "", "none", "NONE"):
             raise DatasetFormatError(f"{path}: rosbag2 file compression is not supported (MCAP chunks are)")
         mcap_paths = tuple(bag_dir / Path(p).name for p in info["relative_file_paths"])
@@ -157,21 +174,19 @@ def read_bag_info(bag_dir: str | os.PathLike) -> BagInfo:
             topics=topics,
             custom={str(k): str(v) for k, v in (info.get("custom_data") or {}).items()},
         )
-    except yaml.YAMLError as exc:
-        raise DatasetFormatError(f"{path}: invalid YAML ({exc.__class__.__name__})") from None
     except KeyError as exc:
         raise DatasetFormatError(f"{path}: missing rosbag2 key {exc}") from None
     except (TypeError, ValueError, AttributeError) as exc:
-        raise DatasetFormatError(f"{path}: malformed rosbag2 metadata ({exc})") from None
+        raise DatasetFormatError(f"{path}: malformed rosbag2 metadata ({shortened(str(exc))})") from None
     if not mcap_paths:
         raise DatasetFormatError(f"{path}: relative_file_paths is empty")
     for mcap_path in mcap_paths:
         if not mcap_path.is_file():
-            raise DatasetFormatError(f"{path}: storage file {mcap_path.name} is missing")
+            raise DatasetFormatError(f"{path}: storage file {shortened(mcap_path.name)} is missing")
     fmt = bag.custom.get("gscan_ros.format_version", str(EPISODE_FORMAT_VERSION))
-    if not fmt.isdigit() or int(fmt) > EPISODE_FORMAT_VERSION:
+    if fmt not in {str(version) for version in range(EPISODE_FORMAT_VERSION + 1)}:
         raise DatasetFormatError(
-            f"{path}: episode format version {fmt} is newer than supported ({EPISODE_FORMAT_VERSION})"
+            f"{path}: episode format version {shortened(fmt)} is newer than supported ({EPISODE_FORMAT_VERSION})"
         )
     return bag
 

@@ -1,8 +1,10 @@
-"""Reading gscan_ros bags back as Episodes (`BagEpisodeReader`, `iter_bag_episodes`).
+"""Reading bags back as Episodes (`BagEpisodeReader`, `iter_bag_episodes`).
 
 Streams each MCAP file through `McapScan`, so a truncated or damaged bag yields every
 complete episode it still holds; an episode cut by lost data is dropped and counted in
 the reader's `BagReadReport`, never assembled from the pieces around the damage.
+Format-2 bags (the live topics: ours, or any all-topics recording of a stack) are cut
+into episodes by `episode_assembly`; format-1 bags by their `/command` headers.
 """
 from __future__ import annotations
 
@@ -15,21 +17,26 @@ from typing import Iterable, Iterator
 
 import numpy as np
 
-from gscan_ros.data.bag_format import (
-    EPISODE_TOPICS,
-    OUTCOME_ABORTED,
-    OUTCOME_COMPLETE,
-    GraphCache,
-    episode_from_header,
-)
-from gscan_ros.data.bag_metadata import EPISODE_FORMAT_VERSION, read_bag_info
+from gscan_ros.data import episode_status as es
+from gscan_ros.data.bag_format import LEGACY_EPISODE_TOPICS, GraphCache, episode_from_header
+from gscan_ros.data.bag_metadata import LEGACY_FORMAT_VERSION, read_bag_info
 from gscan_ros.data.bag_report import BagReadReport
 from gscan_ros.data.bag_scan import LOSS, McapScan
 from gscan_ros.data.bag_schema import ACTION, COMMAND, COMMAND_GRAPH, OBSERVATION
 from gscan_ros.data.episode import Episode
+from gscan_ros.data.episode_assembly import LOSS as STREAM_LOSS
+from gscan_ros.data.episode_assembly import (
+    REORDER_WINDOW,
+    AssembledEpisode,
+    EpisodeAssembler,
+    Message,
+    carries_records,
+    publication_order,
+    stack_topic,
+)
 from gscan_ros.errors import DatasetFormatError, GscanError
 from gscan_ros.world.types import Action
-from msg_adapters import cdr_to_action, cdr_to_observation, cdr_to_text
+from msg_adapters import cdr_to_action, cdr_to_episode_status, cdr_to_observation, cdr_to_text
 
 # Losses are logged under the bag API's name (docs/bags.md), whichever module reads.
 log = logging.getLogger("gscan_ros.data.bag")
@@ -41,8 +48,9 @@ class RecordedEpisode:
 
     episode: Episode
     header: dict
-    states: np.ndarray | None  # uint8[T+1, 6, 6, 16]
+    states: np.ndarray | None  # uint8[T+1, G, G, 16]
     graph_json: str | None
+    outcome: str = es.COMPLETE
 
 
 class _ObservationDecoder:
@@ -78,7 +86,7 @@ class _OpenEpisode:
     observations: list = field(default_factory=list)
     observation_count: int = 0
     graph_json: str | None = None
-    aborted: bool = False  # header "outcome": "aborted"
+    outcome: str = es.COMPLETE  # header "outcome" (format 1 knew "aborted" only)
 
 
 class BagEpisodeReader(Iterator[Episode]):
@@ -99,12 +107,12 @@ class BagEpisodeReader(Iterator[Episode]):
         *,
         decode_states: bool = False,
         log_losses: bool = True,
-        include_aborted: bool = False,
+        include_incomplete: bool = False,
     ):
         self.info = read_bag_info(bag_dir)
         self.splits = None if splits is None else frozenset(splits)
         self.decode_states = decode_states
-        self.include_aborted = include_aborted  # also yield episodes recorded as aborted
+        self.include_incomplete = include_incomplete  # also yield cut, preempted and rejected episodes
         self.log_losses = log_losses  # log report.summary() as a warning when something was lost
         self.report = BagReadReport(
             self.info.path,
@@ -118,7 +126,86 @@ class BagEpisodeReader(Iterator[Episode]):
 
     def records(self) -> Iterator[RecordedEpisode]:
         """Complete episodes in bag order (with observations when `decode_states`), and
-        those recorded as aborted when `include_aborted`."""
+        those that ended otherwise when `include_incomplete`."""
+        if self.info.format_version == LEGACY_FORMAT_VERSION:
+            yield from self._legacy_records()
+        else:
+            yield from self._live_records()
+        self.report.finished = True
+        if self.log_losses and not self.report.complete:
+            log.warning(self.report.summary())
+
+    # -- format 2: the live topics --------------------------------------------------------
+    def _live_records(self) -> Iterator[RecordedEpisode]:
+        action_cache: dict[bytes, Action] = {}
+
+        def decode_action(data: bytes) -> Action:
+            action = action_cache.get(data)
+            if action is None:
+                action = action_cache[bytes(data)] = cdr_to_action(data)
+            return action
+
+        decode_observation = _ObservationDecoder()
+        graphs = GraphCache()
+        assembler = EpisodeAssembler(decode_action=decode_action, decode_status=cdr_to_episode_status,
+                                     decode_text=cdr_to_text, keep_observations=self.decode_states,
+                                     records=carries_records(self.info.topics))
+        path = self.info.path
+        window = 0 if self.info.publish_ordered else REORDER_WINDOW
+        for item in publication_order(self._live_messages(), window):
+            if item is STREAM_LOSS:
+                assembler.lose()
+                continue
+            try:
+                done = assembler.feed(item)
+            except GscanError as exc:
+                raise DatasetFormatError(f"{path}: {item.topic} at {item.publish_ns} ns: {exc}") from None
+            if done is None:
+                continue
+            if done.outcome == es.COMPLETE:
+                self.report.episodes_read += 1
+            else:
+                self.report.count_outcome(done.outcome)
+                if not self.include_incomplete:
+                    continue
+            if self.splits is None or done.header["split"] in self.splits:
+                yield self._assembled(path, done, graphs, decode_observation)
+        assembler.finish()
+        for _ in range(assembler.rejected):
+            self.report.count_outcome(es.REJECTED)
+        self.report.incomplete_episodes += sum(assembler.dropped.values())
+        self.report.discarded_messages += assembler.dropped_messages
+        self.report.drop_reasons = dict(assembler.dropped)
+
+    def _assembled(self, path: Path, done: AssembledEpisode, graphs: GraphCache, decode) -> RecordedEpisode:
+        where = f"{path}: episode {done.header['episode_id']}"
+        episode = episode_from_header(done.header, done.actions, str(path))
+        graphs.attach(episode, done.graph_json, where)
+        states = None
+        if self.decode_states:
+            # A recorder that lagged may lack some states: they are the world's, so replay them.
+            states = np.stack([decode(d) for d in done.observations] if done.observations else episode.states())
+        return RecordedEpisode(episode, done.header, states, done.graph_json, done.outcome)
+
+    def _live_messages(self) -> Iterator[Message | object]:
+        """The stack's messages (topics relative to its namespace), and LOSS where data was lost."""
+        relative: dict[str, str | None] = {}
+        order = 0
+        for item in self._scan():
+            if item is LOSS:
+                yield STREAM_LOSS
+                continue
+            channel = item[0]
+            name = relative.get(channel.topic, "?")
+            if name == "?":
+                name = relative[channel.topic] = stack_topic(channel.topic, relative)
+            self.report.messages_read += 1
+            if name is not None:
+                order += 1
+                yield Message(item[3], order, name, item[4])
+
+    # -- format 1: `/command` headers ------------------------------------------------------
+    def _legacy_records(self) -> Iterator[RecordedEpisode]:
         action_cache: dict[bytes, Action] = {}  # CDR bytes of the 7 action tokens
         decode_observation = _ObservationDecoder()
         graphs = GraphCache()
@@ -135,7 +222,7 @@ class BagEpisodeReader(Iterator[Episode]):
                 current = self._start(path, data)
                 continue
             if current is None:  # between episodes: only episode topics count as lost data
-                self.report.discarded_messages += topic in EPISODE_TOPICS
+                self.report.discarded_messages += topic in LEGACY_EPISODE_TOPICS
                 continue
             current.messages += 1
             if topic == OBSERVATION.name:
@@ -151,9 +238,9 @@ class BagEpisodeReader(Iterator[Episode]):
                     current.actions.append(action)
                     continue
                 done, current = current, None
-                if done.aborted:
-                    self.report.aborted_episodes += 1
-                    if not self.include_aborted:
+                if done.outcome != es.COMPLETE:
+                    self.report.count_outcome(done.outcome)
+                    if not self.include_incomplete:
                         continue
                 else:
                     self.report.episodes_read += 1
@@ -162,9 +249,6 @@ class BagEpisodeReader(Iterator[Episode]):
             elif topic == COMMAND_GRAPH.name:
                 current.graph_json = cdr_to_text(data)
         self._drop(current)
-        self.report.finished = True
-        if self.log_losses and not self.report.complete:
-            log.warning(self.report.summary())
 
     # -- episode assembly ---------------------------------------------------------------
     def _start(self, path: Path, data: bytes) -> _OpenEpisode:
@@ -177,13 +261,14 @@ class BagEpisodeReader(Iterator[Episode]):
             # A live command typed as plain text carries no initial situation: unusable.
             return _OpenEpisode(header=None, selected=False)
         version = header.get("version")
-        if not isinstance(version, int) or version > EPISODE_FORMAT_VERSION:
+        if version != LEGACY_FORMAT_VERSION:
             raise DatasetFormatError(f"{path}: episode header version {version!r} is not supported")
-        outcome = header.get("outcome", OUTCOME_COMPLETE)
-        if outcome not in (OUTCOME_COMPLETE, OUTCOME_ABORTED):
-            raise DatasetFormatError(f"{path}: episode {header.get('episode_id')}: unknown outcome {outcome!r}")
+        try:
+            outcome = es.outcome_of(header.get("outcome", es.COMPLETE))
+        except GscanError as exc:
+            raise DatasetFormatError(f"{path}: episode {header.get('episode_id')}: {exc}") from None
         selected = self.splits is None or header.get("split") in self.splits
-        return _OpenEpisode(header=header, selected=selected, aborted=outcome == OUTCOME_ABORTED)
+        return _OpenEpisode(header=header, selected=selected, outcome=outcome)
 
     def _drop(self, episode: _OpenEpisode | None) -> None:
         if episode is not None:
@@ -202,18 +287,24 @@ class BagEpisodeReader(Iterator[Episode]):
             raise AssertionError("unselected episodes are never finished")
         where = f"{path}: episode {done.header.get('episode_id')}"
         # An aborted episode may lack the state its last action led to (the reset came first).
-        if done.observation_count != len(done.actions) + 1 and not (
-            done.aborted and done.observation_count == len(done.actions)
-        ):
+        complete_states = done.observation_count == len(done.actions) + 1
+        if not complete_states and not (done.outcome != es.COMPLETE and done.observation_count == len(done.actions)):
             raise DatasetFormatError(
                 f"{where}: {done.observation_count} observations for {len(done.actions) + 1} actions (with <eos>)"
             )
         episode = episode_from_header(done.header, done.actions, str(path))
         graphs.attach(episode, done.graph_json, where)
-        states = np.stack(done.observations) if self.decode_states else None
-        return RecordedEpisode(episode, done.header, states, done.graph_json)
+        states = None
+        if self.decode_states:
+            states = np.stack(done.observations) if complete_states else np.stack(episode.states())
+        return RecordedEpisode(episode, done.header, states, done.graph_json, done.outcome)
 
     # -- MCAP ------------------------------------------------------------------------------
+    def _scan(self) -> Iterator[tuple | object]:
+        """McapScan's items over every storage file, and `LOSS` where data was lost."""
+        for path in self.info.mcap_paths:
+            yield from McapScan(path, self.report, self.info).items()
+
     def _messages(self) -> Iterator[tuple[Path, str, bytes] | object]:
         """(path, topic, CDR data) per readable message, and `LOSS` where data was lost."""
         for path in self.info.mcap_paths:
@@ -222,7 +313,8 @@ class BagEpisodeReader(Iterator[Episode]):
 
 
 def iter_bag_episodes(
-    bag_dir: str | os.PathLike, splits: Iterable[str] | None = None, *, log_losses: bool = True
+    bag_dir: str | os.PathLike, splits: Iterable[str] | None = None, *, log_losses: bool = True,
+    include_incomplete: bool = False,
 ) -> BagEpisodeReader:
     """Stream the complete episodes of a bag (optionally only `splits`), in bag order.
 
@@ -230,4 +322,5 @@ def iter_bag_episodes(
     episodes/messages were recovered and lost; losses are also logged as a warning
     (unless `log_losses=False`: the caller reports them itself).
     """
-    return BagEpisodeReader(bag_dir, splits, log_losses=log_losses)
+    return BagEpisodeReader(bag_dir, splits, log_losses=log_losses, include_incomplete=include_incomplete)
+

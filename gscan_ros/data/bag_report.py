@@ -19,8 +19,11 @@ class BagReadReport:
     expected_episodes: int | None = None
     messages_read: int = 0
     episodes_read: int = 0  # complete episodes, whatever the split filter
-    aborted_episodes: int = 0  # recorded as aborted (header "outcome"), whatever the split filter
-    incomplete_episodes: int = 0  # started, never reached `<eos>` (end of data, or cut by damage)
+    # Episodes that ended other than complete (cut, preempted, rejected), by outcome: no
+    # demonstrations, skipped unless asked for; whatever the split filter.
+    outcomes: dict[str, int] = field(default_factory=dict)
+    incomplete_episodes: int = 0  # started, never properly ended (end of data, damage, a missing message)
+    drop_reasons: dict[str, int] = field(default_factory=dict)  # why, for format-2 bags (reason -> episodes)
     discarded_messages: int = 0  # read but outside any complete episode
     truncated_files: list[Path] = field(default_factory=list)  # ended before the MCAP footer
     unread_bytes: int = 0  # trailing bytes that held no complete record
@@ -60,9 +63,17 @@ class BagReadReport:
         return self.discarded_messages + self.unreadable_messages
 
     @property
+    def other_outcomes(self) -> int:
+        """Episodes that ended other than complete (`outcomes`)."""
+        return sum(self.outcomes.values())
+
+    def count_outcome(self, outcome: str) -> None:
+        self.outcomes[outcome] = self.outcomes.get(outcome, 0) + 1
+
+    @property
     def lost_episodes(self) -> int:
         if self.expected_episodes is not None:
-            return max(self.expected_episodes - self.episodes_read - self.aborted_episodes, 0)
+            return max(self.expected_episodes - self.episodes_read - self.other_outcomes, 0)
         return self.incomplete_episodes
 
     @property
@@ -89,8 +100,9 @@ class BagReadReport:
             details.append(f"no MCAP footer{torn}")
         if self.incomplete_episodes:
             details.append(f"{self.incomplete_episodes} incomplete")
-        if self.aborted_episodes:
-            details.append(f"{self.aborted_episodes} recorded as aborted, skipped")
+        if self.outcomes:
+            details.append(", ".join(f"{n} {outcome}" for outcome, n in sorted(self.outcomes.items()))
+                           + " (no demonstrations)")
         of = f" of {self.expected_episodes}" if self.expected_episodes is not None else ""
         bound = "" if self.exact else " at least"
         line = (

@@ -83,6 +83,10 @@ COMMAND_GRAPH = _spec(interface.COMMAND_GRAPH)
 OBSERVATION = _spec(interface.OBSERVATION)
 ACTION = _spec(interface.ACTION)
 WORLD_IMAGE = _spec(interface.WORLD_IMAGE)
+SITUATION = _spec(interface.SITUATION)
+WORLD_RESET = _spec(interface.WORLD_RESET)
+EPISODE_STATUS = _spec(interface.EPISODE_STATUS)
+EPISODE = _spec(interface.EPISODE)
 TOPICS: dict[str, TopicSpec] = {t.name: t for t in map(_spec, interface.RECORDED)}
 
 

@@ -1,5 +1,6 @@
 """Writing gscan_ros bags: generated datasets (`write_bag`, `BagWriter.write_episode`) and
-live recordings (`BagWriter.write_recorded_episode`), one format (docs/bags.md).
+live recordings (`BagWriter.write_message` of every message as received), one format:
+the live topics (docs/bags.md).
 
 MCAP profile `ros2`, CDR messages (rclpy serialization via msg_adapters), `ros2msg`
 schemas with full dependency text, zstd chunks, and a rosbag2 `metadata.yaml`.
@@ -18,15 +19,8 @@ from mcap.well_known import MessageEncoding, Profile, SchemaEncoding
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 
-from gscan_ros.data.bag_format import (
-    ACTION_DELAY_NS,
-    EPISODE_PERIOD_NS,
-    OUTCOME_ABORTED,
-    OUTCOME_COMPLETE,
-    STEP_NS,
-    episode_header,
-    live_episode,
-)
+from gscan_ros.data import episode_status as es
+from gscan_ros.data.bag_format import ACTION_DELAY_NS, EPISODE_PERIOD_NS, PROLOGUE_NS, STEP_NS, episode_record
 from gscan_ros.data.bag_metadata import (
     EPISODE_FORMAT,
     EPISODE_FORMAT_VERSION,
@@ -43,7 +37,10 @@ from gscan_ros.data.bag_schema import (
     ACTION,
     COMMAND,
     COMMAND_GRAPH,
+    EPISODE,
+    EPISODE_STATUS,
     OBSERVATION,
+    SITUATION,
     TOPICS,
     WORLD_IMAGE,
     YamlDumper,
@@ -53,11 +50,19 @@ from gscan_ros.data.bag_schema import (
     type_hash,
 )
 from gscan_ros.data.episode import Episode
-from gscan_ros.data.episode_log import ABORTED, EpisodeRecord
 from gscan_ros.errors import DatasetFormatError, GraphError
 from gscan_ros.language.graph import CommandGraph
-from gscan_ros.world.types import Action, Situation
-from msg_adapters import action_to_msg, graph_to_msg, image_to_msg, msg_to_cdr, observation_to_msg, text_to_msg
+from gscan_ros.world.types import Action
+from msg_adapters import (
+    action_to_msg,
+    episode_status_to_msg,
+    graph_to_msg,
+    image_to_msg,
+    msg_to_cdr,
+    observation_to_msg,
+    situation_to_msg,
+    text_to_msg,
+)
 
 DEFAULT_CHUNK_SIZE = 1 << 20
 
@@ -66,12 +71,12 @@ class BagWriter:
     """Incremental bag writer for generated datasets and live recorders.
 
     Use as a context manager (or `open()` / `close()`). `write_episode` writes a whole
-    demonstration with synthetic times; `write_recorded_episode` writes a live one with
-    the messages and times the recorder received, and flushes it to disk. Both number
-    the episodes and count them per split (metadata.yaml `gscan_ros.splits`), so a live
-    bag and a generated one carry the same metadata. Completed chunks are flushed to
-    the file as they fill, so a killed writer leaves a readable prefix; `metadata.yaml`
-    exists from `open()` on (status `recording`) and gets the final counts at `close()`.
+    demonstration as the live stack would publish it, with synthetic times; a recorder
+    writes each message as it came (`write_message`) and counts the episodes that end
+    (`count_episode`). Both count episodes per split (metadata.yaml `gscan_ros.splits`).
+    Completed chunks are flushed to the file as they fill, so a killed writer leaves a
+    readable prefix; `metadata.yaml` exists from `open()` on (status `recording`) and
+    gets the final counts at `close()`.
     """
 
     def __init__(
@@ -97,6 +102,8 @@ class BagWriter:
         self._start_ns: int | None = None
         self._end_ns: int | None = None
         self.episodes_written = 0
+        self._publish_ordered = True  # every message so far in publish-time order (readers skip reordering)
+        self._last_publish_ns = 0
         self.custom_data: dict[str, str] = {}  # extra metadata.yaml custom_data (`bag repair`'s notes)
 
     # -- lifecycle -------------------------------------------------------------------
@@ -120,11 +127,26 @@ class BagWriter:
         self._file.close()
         self._mcap = self._file = None
 
+    def abandon(self) -> None:
+        """Stop without finishing: what was written stays an unfinished bag (status
+        `recording`, no MCAP summary), as a killed writer's, which every reader reports
+        as incomplete; a bag cut short must never read as a closed, whole one."""
+        if self._mcap is None:
+            return
+        try:
+            self.flush()
+        finally:
+            self._file.close()
+            self._mcap = self._file = None
+
     def __enter__(self) -> "BagWriter":
         return self.open()
 
-    def __exit__(self, *exc_info) -> None:
-        self.close()
+    def __exit__(self, exc_type, *exc_info) -> None:
+        if exc_type is None:
+            self.close()
+        else:  # an error or an interrupt (KeyboardInterrupt) cut the writing short
+            self.abandon()
 
     def flush(self) -> None:
         """Write the chunk in progress and refresh metadata.yaml (a recorder's episode end)."""
@@ -133,9 +155,10 @@ class BagWriter:
         self._write_metadata(STATUS_RECORDING)
 
     # -- writing -----------------------------------------------------------------------
-    def write_message(self, topic: str, msg, t_ns: int) -> None:
-        """Append one ROS message (any rosidl type) on `topic` at log time `t_ns`."""
-        self._write(topic, msg, t_ns)
+    def write_message(self, topic: str, msg, t_ns: int, publish_ns: int | None = None) -> None:
+        """Append one ROS message (any rosidl type) on `topic`, received at `t_ns` (the log
+        time) and published at `publish_ns` (the DDS source timestamp; default `t_ns`)."""
+        self._write(topic, msg, t_ns, publish_ns)
         self._file.flush()  # cheap when empty; pushes out a chunk the MCAP writer just closed
 
     def write_episode(
@@ -146,67 +169,54 @@ class BagWriter:
         include_images: bool | None = None,
         t0_ns: int | None = None,
     ) -> int:
-        """Write one episode (header, graph, observation/action steps, `<eos>`); returns its last time."""
+        """Write one demonstration as the live stack publishes it; returns its last time.
+
+        At t0: `/episode` (what the dataset knows of it), the world's `/situation` and
+        `/observation` 0, the `/command`, its `/command_graph` (optional) and the policy's
+        ACTIVE report; then action t at +(t+1) ms and the world's reply half a millisecond
+        later; `<eos>` and the SUCCEEDED report close it (docs/bags.md "Episodes").
+        """
         images = self.include_images if include_images is None else include_images
         if t0_ns is None:
             t0_ns = self.episodes_written * EPISODE_PERIOD_NS
             if self._end_ns is not None:
                 t0_ns = max(t0_ns, self._end_ns + STEP_NS)
-        self._begin_episode(episode, OUTCOME_COMPLETE, t0_ns)
-        if graph is not None:
-            self._write(COMMAND_GRAPH.name, graph_to_msg(graph), t0_ns + ACTION_DELAY_NS)
+        episode_id = str(self.episodes_written)
+        prologue = iter(range(t0_ns, t0_ns + STEP_NS, PROLOGUE_NS))
+        record = episode_record(episode, episode_id, self.episodes_written)
+        self._write(EPISODE.name, text_to_msg(json.dumps(record, separators=(",", ":"))), next(prologue))
+        self._write(SITUATION.name, situation_to_msg(episode.situation), next(prologue))
         world = None
         if images:
             from gscan_ros.world.world import World
 
             world = World(episode.situation)
-        steps = (*episode.actions, Action.EOS)
-        for t, (state, action) in enumerate(zip(episode.states(), steps)):
+        states = iter(episode.states())
+        self._write_state(next(states), world, next(prologue))
+        self._write(COMMAND.name, text_to_msg(episode.command), next(prologue))
+        if graph is not None:
+            self._write(COMMAND_GRAPH.name, graph_to_msg(graph), next(prologue))
+        start_ns = next(prologue)
+        self._write(EPISODE_STATUS.name, episode_status_to_msg(es.EpisodeStatus(episode_id, start_ns, es.ACTIVE)),
+                    start_ns)
+        t_ns = start_ns
+        for t, action in enumerate((*episode.actions, Action.EOS)):
             t_ns = t0_ns + (t + 1) * STEP_NS
-            self._write(OBSERVATION.name, observation_to_msg(state), t_ns)
-            if world is not None:
-                self._write(WORLD_IMAGE.name, image_to_msg(world.render()), t_ns)
-                if action is not Action.EOS:
+            self._write(ACTION.name, action_to_msg(action), t_ns)
+            if action is not Action.EOS:
+                if world is not None:
                     world.step(action)
-            self._write(ACTION.name, action_to_msg(action), t_ns + ACTION_DELAY_NS)
-        self._end_episode(episode)
-        return self._end_ns
-
-    def write_recorded_episode(self, record: EpisodeRecord, graph: CommandGraph, situation: Situation, *,
-                               recorded_by: str) -> int:
-        """Write a live episode as recorded (`episode_log`), at the times its messages were
-        sent, and flush it to disk; returns its episode id.
-
-        `graph` and `situation` are the record's graph and situation messages, decoded:
-        the header names the command the policy followed, starts from `situation` and is
-        marked aborted when a reset ended the episode, which then gets a closing `<eos>`
-        stamped with the reset (the bag's episode delimiter).
-        """
-        aborted = record.outcome == ABORTED
-        episode = live_episode(graph, situation, record.actions, recorded_by=recorded_by,
-                               aborted_because=record.reason if aborted else None)
-        episode_id = self.episodes_written
-        self._begin_episode(episode, OUTCOME_ABORTED if aborted else OUTCOME_COMPLETE, record.start_ns)
-        self._write(COMMAND_GRAPH.name, record.graph.value, record.start_ns)
-        for step in record.steps:
-            self._write(OBSERVATION.name, step.observation.value, step.observation.t_ns)
-            if step.image is not None:
-                self._write(WORLD_IMAGE.name, step.image.value, step.image.t_ns)
-            if step.action is not None:
-                self._write(ACTION.name, action_to_msg(step.action.value), step.action.t_ns)
-        if aborted:
-            self._write(ACTION.name, action_to_msg(Action.EOS), record.end_ns)
-        self._end_episode(episode)
-        self.flush()
-        return episode_id
-
-    def _begin_episode(self, episode: Episode, outcome: str, t_ns: int) -> None:
-        header = episode_header(episode, self.episodes_written, outcome)
-        self._write(COMMAND.name, text_to_msg(json.dumps(header, separators=(",", ":"))), t_ns)
-
-    def _end_episode(self, episode: Episode) -> None:
+                self._write_state(next(states), world, t_ns + ACTION_DELAY_NS)
+        self._write(EPISODE_STATUS.name, episode_status_to_msg(es.EpisodeStatus(episode_id, start_ns, es.COMPLETE)),
+                    t_ns + ACTION_DELAY_NS)
         self.count_episode(episode.split)
         self._file.flush()
+        return self._end_ns
+
+    def _write_state(self, state, world, t_ns: int) -> None:
+        self._write(OBSERVATION.name, observation_to_msg(state), t_ns)
+        if world is not None:
+            self._write(WORLD_IMAGE.name, image_to_msg(world.render()), t_ns)
 
     def count_episode(self, split: str | None) -> None:
         """One more episode written (of `split`, when known): numbering and metadata counts."""
@@ -239,12 +249,12 @@ class BagWriter:
         if self._mcap is None:
             raise RuntimeError(f"bag writer for {self.bag_dir} is not open")
 
-    def _write(self, topic: str, msg, t_ns: int) -> None:
+    def _write(self, topic: str, msg, t_ns: int, publish_ns: int | None = None) -> None:
         self._require_open()
         channel_id = self._channels.get(topic)
         if channel_id is None:
             channel_id = self.register_channel(topic, msg_type_name(type(msg)))
-        self.add_record(topic, channel_id, msg_to_cdr(msg), t_ns, t_ns, 0)
+        self.add_record(topic, channel_id, msg_to_cdr(msg), t_ns, t_ns if publish_ns is None else publish_ns, 0)
 
     # -- channels and records (`bag repair` copies another bag's through these) ------------
     def channel_id(self, topic: str) -> int | None:
@@ -255,6 +265,8 @@ class BagWriter:
                    sequence: int) -> None:
         """Append serialized message bytes on a registered channel, times and sequence as given."""
         self._mcap.add_message(channel_id, log_time=log_time, publish_time=publish_time, data=data, sequence=sequence)
+        self._publish_ordered &= publish_time >= self._last_publish_ns
+        self._last_publish_ns = max(self._last_publish_ns, publish_time)
         self._counts[topic] += 1
         self._start_ns = log_time if self._start_ns is None else min(self._start_ns, log_time)
         self._end_ns = log_time if self._end_ns is None else max(self._end_ns, log_time)
@@ -304,6 +316,8 @@ class BagWriter:
                 "gscan_ros.format_version": str(EPISODE_FORMAT_VERSION),
                 "gscan_ros.status": status,
                 "gscan_ros.splits": json.dumps(dict(sorted(self._splits.items()))),
+                "gscan_ros.episodes": str(self.episodes_written),
+                "gscan_ros.publish_ordered": "true" if self._publish_ordered else "false",
             },
         )
 

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from functools import cached_property
 from typing import Iterable
 
-from gscan_ros.errors import CommandError
+from gscan_ros.errors import CommandError, quoted
 from gscan_ros.world.command import CommandFrame, split_command
 from gscan_ros.world.types import (
     ADVERBS,
@@ -158,4 +158,4 @@ def parse_command(command: str | Iterable[str]) -> Command:
     try:
         return _BY_TOKENS[tokens]
     except KeyError:
-        raise CommandError(f"not a gSCAN command: {' '.join(tokens)!r}") from None
+        raise CommandError(f"not a gSCAN command: {quoted(' '.join(tokens))}") from None

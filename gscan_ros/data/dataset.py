@@ -25,7 +25,7 @@ from typing import IO, Any, Iterable, Iterator, Mapping
 
 from gscan_ros.data.commands import grammar_string
 from gscan_ros.data.episode import Episode
-from gscan_ros.errors import DatasetFormatError, GscanError, InvalidActionError, SituationError
+from gscan_ros.errors import DatasetFormatError, GscanError, InvalidActionError, SituationError, quoted
 from gscan_ros.world.types import (
     ADVERBS,
     COLOR_ADJECTIVES,
@@ -95,7 +95,7 @@ class DatasetHeader:
                 continue  # optional in old files; keep the default
             value = d[key]
             if isinstance(value, bool) or not isinstance(value, kind):
-                raise DatasetFormatError(f"header: key {key!r}: unexpected value {value!r}")
+                raise DatasetFormatError(f"header: key {key!r}: unexpected value {quoted(value)}")
             setattr(header, key, value)
         for key in VOCABULARY_KEYS:
             value = d.get(key, {})
@@ -146,7 +146,7 @@ class Example:
         command = _required_text(d, "command")
         tokens = tuple(command.split(","))
         if not command or any(not t or t != t.strip() for t in tokens):
-            raise DatasetFormatError(f"field 'command': expected comma-joined tokens, got {command!r}")
+            raise DatasetFormatError(f"field 'command': expected comma-joined tokens, got {quoted(command)}")
         try:
             situation = Situation.from_json(_required(d, "situation"))
         except SituationError as exc:
@@ -291,9 +291,10 @@ def _dataset_path(path: str | os.PathLike) -> Path:
     return path
 
 
-def _walk(path: Path, header: dict, wanted: frozenset[str] | None,
-          header_only: bool = False) -> Iterator[tuple[str, int, Any]]:
-    """Yield (split, index, raw example) of wanted splits; fill `header` on the way.
+def _walk(path: Path, header: dict, wanted: frozenset[str] | None, header_only: bool = False,
+          sizes: dict[str, int] | None = None) -> Iterator[tuple[str, int, Any]]:
+    """Yield (split, index, raw example) of wanted splits; fill `header` on the way, and
+    `sizes` (examples per split, wanted or not) when given.
 
     With `header_only`, stop at `examples` when the header is already complete.
     """
@@ -309,7 +310,7 @@ def _walk(path: Path, header: dict, wanted: frozenset[str] | None,
                     if key == "examples":
                         if header_only and all(k in header for k in _HEADER_KEYS):
                             return  # our own layout: everything needed came first
-                        yield from _walk_examples(stream, wanted)
+                        yield from _walk_examples(stream, wanted, {} if sizes is None else sizes)
                     else:
                         header[key] = stream.value()
                     if stream.expect(",}", "',' or '}'") == "}":
@@ -320,7 +321,8 @@ def _walk(path: Path, header: dict, wanted: frozenset[str] | None,
             raise DatasetFormatError(f"{path}: not UTF-8 text ({exc.reason})") from None
 
 
-def _walk_examples(stream: _JsonStream, wanted: frozenset[str] | None) -> Iterator[tuple[str, int, Any]]:
+def _walk_examples(stream: _JsonStream, wanted: frozenset[str] | None,
+                   sizes: dict[str, int]) -> Iterator[tuple[str, int, Any]]:
     stream.expect("{", "'{' after \"examples\"")
     if stream.peek() == "}":
         stream.expect("}", "'}'")
@@ -342,6 +344,7 @@ def _walk_examples(stream: _JsonStream, wanted: frozenset[str] | None) -> Iterat
                 index += 1
                 if stream.expect(",]", f"',' or ']' in split {split!r}") == "]":
                     break
+        sizes[split] = index
         if stream.expect(",}", "',' or '}' after a split") == "}":
             return
 
@@ -360,15 +363,14 @@ def read_header(path: str | os.PathLike) -> DatasetHeader:
 
 def iter_raw_examples(path: str | os.PathLike, splits: Iterable[str] | None = None) -> Iterator[tuple[str, int, dict]]:
     """(split, index, example dict) in file order, streaming; `splits` filters."""
+    from gscan_ros.data.io import require_splits
+
     wanted = None if splits is None else frozenset(splits)
-    seen: set[str] = set()
+    sizes: dict[str, int] = {}
     file = _dataset_path(path)
-    for split, index, raw in _walk(file, {}, wanted):
-        seen.add(split)
-        yield split, index, raw
-    if wanted is not None and wanted - seen:
-        missing = ", ".join(sorted(wanted - seen))
-        raise DatasetFormatError(f"no examples in split(s) {missing} of {file}")
+    yield from _walk(file, {}, wanted, sizes=sizes)
+    if wanted is not None:
+        require_splits(sorted(wanted), sizes, file)
 
 
 def iter_examples(path: str | os.PathLike, splits: Iterable[str] | None = None) -> Iterator[tuple[str, int, Example]]:
@@ -391,11 +393,12 @@ def write_dataset_json(path: str | os.PathLike, header: DatasetHeader,
     Header keys first, then `examples` with one split after the other; the result is
     one JSON object like the released files. Returns the file path.
     """
+    from gscan_ros.outputs import replacing
+
     path = Path(path)
     if path.is_dir():
         path = path / DATASET_FILE
-    tmp = path.with_name(path.name + ".partial")
-    with open(tmp, "w", encoding="utf-8") as out:
+    with replacing(path) as tmp, open(tmp, "w", encoding="utf-8") as out:
         out.write("{\n")
         for key, value in header.to_json().items():
             out.write(f"{json.dumps(key)}: {json.dumps(value)},\n")
@@ -407,7 +410,6 @@ def write_dataset_json(path: str | os.PathLike, header: DatasetHeader,
                 out.write(line)
             out.write("\n]")
         out.write("\n}\n}\n")
-    os.replace(tmp, path)
     return path
 
 

@@ -10,7 +10,9 @@ Pipeline (as LauraRuis/groundedSCAN `dataset.py`):
    processes, each with its own seed stream (seed, command index), so the output is
    byte-identical for any number of workers; examples are serialised in the workers
    and parked in a scratch file, keeping only small per-example arrays in memory;
-4. splits (`gscan_ros.data.splits`), then dataset.txt (or one bag per split).
+4. splits (`gscan_ros.data.splits`), then dataset.txt (or one bag per split and the
+   dataset manifest), built in a staging folder inside the output folder and moved into
+   place only once complete, under the output's lock (`gscan_ros.outputs`).
 
 Defaults reproduce the released compositional split sizes: with 5 resamplings the
 per-direction layout counts (17 straight, 41 diagonal) give exactly the released
@@ -23,8 +25,6 @@ import hashlib
 import json
 import multiprocessing
 import os
-import shutil
-import tempfile
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -36,7 +36,7 @@ from gscan_ros import __version__
 from gscan_ros.data.bag_metadata import bag_owned_files
 from gscan_ros.data.commands import COMMANDS, Command
 from gscan_ros.data.dataset import DATASET_FILE, DatasetHeader, Example, write_dataset_json
-from gscan_ros.data.io import is_bag
+from gscan_ros.data.io import DATASET_MANIFEST, is_bag, write_manifest
 from gscan_ros.data.sampling import (
     ALL_OBJECTS,
     OTHER_OBJECTS_SAMPLE_PERCENTAGE,
@@ -56,6 +56,7 @@ from gscan_ros.data.splits import (
     held_out_splits,
 )
 from gscan_ros.errors import GscanError
+from gscan_ros.outputs import claimed, refuse_links, scratch
 from gscan_ros.world import Action, demonstrate
 from gscan_ros.world.types import SUPPORTED_GRID_SIZES
 
@@ -252,52 +253,56 @@ def _map_chunks(config, placements, tasks, workers: int) -> Iterator[_ChunkResul
 def generate_dataset(out_dir: str | os.PathLike, config: GenerationConfig = GenerationConfig(), *,
                      workers: int = 1, fmt: str = "txt", progress: bool = False,
                      overwrite: bool = False) -> GenerationReport:
-    """Generate a dataset into `out_dir` (DIR/dataset.txt, or DIR/<split>/ bags for mcap).
+    """Generate a dataset into `out_dir` (DIR/dataset.txt, or DIR/<split>/ bags and
+    DIR/manifest.json for mcap).
 
-    A dataset already in `out_dir` is refused unless `overwrite`; then its dataset.txt and
-    split bags are removed before the new one is written, so no stale split remains.
-    Nothing is written before the settings are checked.
+    A dataset already in `out_dir` is refused unless `overwrite`. The new one is built in a
+    staging folder beside the old one, which is swapped out only once the new one is
+    complete (`_install`), so an interrupted or failed run leaves the old dataset as it
+    was. One writer at a time (`claimed`); nothing is written before the settings are checked.
     """
     if fmt not in FORMATS:
         raise GscanError(f"unknown format {fmt!r}; choose from {', '.join(FORMATS)}")
     start = time.perf_counter()
     config = config.resolved()
     out_dir = Path(out_dir)
-    previous = _previous_dataset(out_dir, overwrite)
-
-    layout_rng = np.random.default_rng([config.seed, _STREAM_PLACEMENTS])
-    placements = {t: sample_placements(layout_rng, config.grid_size, config.num_resampling) for t in ALL_OBJECTS}
-    chunks = _plan(config, placements)
-    masks = _select(config, chunks)
-    candidates = sum(c.labels.size for c in chunks)
-    dropped = sum(int((c.labels == _DROPPED).sum()) for c in chunks)
-    tasks = [(c.command_index, c.targets, m) for c, m in zip(chunks, masks) if m.any()]
-    labels = np.concatenate([c.labels[m] for c, m in zip(chunks, masks)]).astype(np.int8)
-    if config.split_kind == "compositional":
-        _check_k_shot(config.k_shot, int((labels == SPLIT_NAMES.index(K_SHOT_SPLIT)).sum()))
-    out_dir.mkdir(parents=True, exist_ok=True)
-
-    with tempfile.TemporaryDirectory(prefix=".gscan_generate_", dir=out_dir) as scratch:
-        store_path = Path(scratch) / "examples.jsonl"
-        offsets, keys, lengths = _generate_into(store_path, config, placements, tasks, len(labels),
-                                                workers, progress)
-        split_rng = np.random.default_rng([config.seed, _STREAM_SPLITS])
+    with claimed(out_dir):
+        previous = _previous_dataset(out_dir, overwrite, fmt)
+        layout_rng = np.random.default_rng([config.seed, _STREAM_PLACEMENTS])
+        placements = {t: sample_placements(layout_rng, config.grid_size, config.num_resampling) for t in ALL_OBJECTS}
+        chunks = _plan(config, placements)
+        masks = _select(config, chunks)
+        candidates = sum(c.labels.size for c in chunks)
+        dropped = sum(int((c.labels == _DROPPED).sum()) for c in chunks)
+        tasks = [(c.command_index, c.targets, m) for c, m in zip(chunks, masks) if m.any()]
+        labels = np.concatenate([c.labels[m] for c, m in zip(chunks, masks)]).astype(np.int8)
         if config.split_kind == "compositional":
-            result = assign_compositional(split_rng, labels, keys, config.percentage_train,
-                                          config.percentage_dev, config.k_shot, dropped)
-        else:
-            result = assign_length(split_rng, lengths, keys, config.cut_off_target_length,
-                                   config.percentage_train, config.percentage_dev)
-        header = _header(config, result, generated=len(labels), candidates=candidates)
-        _remove_dataset(previous)
-        if fmt == "txt":
-            with open(store_path, "rb") as store:
-                lines = {s: _stored_lines(store, offsets, v) for s, v in result.splits.items()}
-                path = write_dataset_json(out_dir / DATASET_FILE, header, lines)
-        else:
-            path = _write_bags(out_dir, result, store_path, offsets, workers, progress)
+            _check_k_shot(config.k_shot, int((labels == SPLIT_NAMES.index(K_SHOT_SPLIT)).sum()))
+        out_dir.mkdir(parents=True, exist_ok=True)
+        with scratch(out_dir, "dataset") as stage:
+            store_path = stage / "examples.jsonl"
+            offsets, keys, lengths = _generate_into(store_path, config, placements, tasks, len(labels),
+                                                    workers, progress)
+            split_rng = np.random.default_rng([config.seed, _STREAM_SPLITS])
+            if config.split_kind == "compositional":
+                result = assign_compositional(split_rng, labels, keys, config.percentage_train,
+                                              config.percentage_dev, config.k_shot, dropped)
+            else:
+                result = assign_length(split_rng, lengths, keys, config.cut_off_target_length,
+                                       config.percentage_train, config.percentage_dev)
+            header = _header(config, result, generated=len(labels), candidates=candidates)
+            built = stage / "new"
+            built.mkdir()
+            if fmt == "txt":
+                with open(store_path, "rb") as store:
+                    lines = {s: _stored_lines(store, offsets, v) for s, v in result.splits.items()}
+                    write_dataset_json(built / DATASET_FILE, header, lines)
+            else:
+                _write_bags(built, result, store_path, offsets, workers, progress)
+                write_manifest(built, {s: len(v) for s, v in result.splits.items()}, header.to_json())
+            _install(built, out_dir, previous, trash=stage / "replaced")
     return GenerationReport(
-        path=path,
+        path=out_dir / DATASET_FILE if fmt == "txt" else out_dir,
         split_sizes={s: len(v) for s, v in result.splits.items()},
         candidates=candidates,
         generated=len(labels),
@@ -359,8 +364,7 @@ def _write_split_bag(out_dir: Path, split: str, store_path: Path, offsets: np.nd
     with open(store_path, "rb") as store:
         episodes = (Example.from_json(json.loads(line)).to_episode(split, i)
                     for i, line in enumerate(_stored_lines(store, offsets, indices)))
-        write_bag(out_dir / split, tqdm(episodes, total=len(indices), desc=split, unit="ep", disable=not progress),
-                  overwrite=True)
+        write_bag(out_dir / split, tqdm(episodes, total=len(indices), desc=split, unit="ep", disable=not progress))
     return split
 
 
@@ -369,7 +373,7 @@ def _write_split_job(job: tuple) -> str:
 
 
 def _write_bags(out_dir: Path, result: SplitResult, store_path: Path, offsets: np.ndarray, workers: int,
-                progress: bool) -> Path:
+                progress: bool) -> None:
     """One bag per split; with `workers` > 1 the splits are written in parallel, largest
     first (train is about half of a compositional set, so two workers halve the time)."""
     from tqdm import tqdm
@@ -378,14 +382,13 @@ def _write_bags(out_dir: Path, result: SplitResult, store_path: Path, offsets: n
     if workers <= 1 or len(splits) <= 1:
         for split in splits:
             _write_split_bag(out_dir, split, store_path, offsets, result.splits[split], progress)
-        return out_dir
+        return
     ctx = multiprocessing.get_context("spawn")
     with ctx.Pool(min(workers, len(splits))) as pool, \
             tqdm(total=sum(len(result.splits[s]) for s in splits), unit="ep", desc="bags", disable=not progress) as bar:
         jobs = [(out_dir, s, store_path, offsets, result.splits[s]) for s in splits]
         for split in pool.imap_unordered(_write_split_job, jobs, chunksize=1):
             bar.update(len(result.splits[split]))
-    return out_dir
 
 
 def _check_k_shot(k_shot: int, available: int) -> None:
@@ -395,35 +398,46 @@ def _check_k_shot(k_shot: int, available: int) -> None:
                          f"generate), got {k_shot}")
 
 
-def _previous_dataset(out_dir: Path, overwrite: bool) -> list[Path]:
-    """What an earlier `generate` wrote to `out_dir` (dataset.txt, <split>/ bags); refused
-    without `overwrite`, and also with it where a split bag holds files of someone else's."""
+def _previous_dataset(out_dir: Path, overwrite: bool, fmt: str) -> list[Path]:
+    """What an earlier `generate` wrote to `out_dir` (dataset.txt, <split>/ bags, the
+    manifest); refused without `overwrite`, and also with it where something to be moved
+    away or written over is not a dataset's own (`_in_the_way`). A symbolic link where
+    the dataset goes is always refused."""
     if out_dir.exists() and not out_dir.is_dir():
         raise GscanError(f"--out {out_dir} is a file, not a directory")
-    bags = [out_dir / s for s in SPLIT_NAMES if is_bag(out_dir / s)]
-    found = ([out_dir / DATASET_FILE] if (out_dir / DATASET_FILE).exists() else []) + bags
+    targets = [out_dir / name for name in (DATASET_FILE, DATASET_MANIFEST, *SPLIT_NAMES)]
+    refuse_links(targets)
+    found = [p for p in targets[:2] if p.is_file()] + [p for p in targets[2:] if is_bag(p)]
     if found and not overwrite:
         names = ", ".join(p.name for p in found[:3]) + (", ..." if len(found) > 3 else "")
         raise GscanError(f"--out {out_dir} already holds a dataset ({names}); pass --overwrite to replace it")
-    for bag in bags:
-        own = bag_owned_files(bag)
-        foreign = sorted(p.name for p in bag.iterdir() if p not in own)
-        if foreign:
-            raise GscanError(f"{bag} holds files that are not the bag's ({', '.join(foreign[:3])}); "
-                             "refusing to overwrite it")
+    written = targets[:1] if fmt == "txt" else targets[1:]
+    for path in dict.fromkeys([*found, *written]):  # what is moved away or written over
+        problem = _in_the_way(path)
+        if problem:
+            raise GscanError(f"{path} {problem}; refusing to overwrite it")
     return found
 
 
-def _remove_dataset(paths: list[Path]) -> None:
-    """Delete a previous dataset: dataset.txt and the split bags' own files (checked by
-    `_previous_dataset`), then the emptied split folders."""
-    for path in paths:
-        if path.name == DATASET_FILE:
-            path.unlink()
-            continue
-        for own in bag_owned_files(path):
-            if own.is_dir():
-                shutil.rmtree(own)
-            else:
-                own.unlink()
-        path.rmdir()
+def _in_the_way(path: Path) -> str | None:
+    """Why `path`, where a dataset keeps dataset.txt, its manifest or a split bag, may not
+    be replaced (None: absent, or a dataset's own)."""
+    if not path.exists():
+        return None
+    if path.name in (DATASET_FILE, DATASET_MANIFEST):
+        return None if path.is_file() else "is not a file"
+    if not path.is_dir():
+        return "is not a folder"
+    own = bag_owned_files(path) if is_bag(path) else []
+    foreign = sorted(p.name for p in path.iterdir() if p not in own)
+    return f"holds files that are not {'the bag' if own else 'a bag'}'s ({', '.join(foreign[:3])})" if foreign else None
+
+
+def _install(built: Path, out_dir: Path, previous: list[Path], trash: Path) -> None:
+    """Swap the complete dataset `built` in for `previous`: by renames, the old manifest
+    first (the folder reads as incomplete from then on), the new manifest last."""
+    trash.mkdir()
+    for path in sorted(previous, key=lambda p: p.name != DATASET_MANIFEST):
+        path.rename(trash / path.name)
+    for path in sorted(built.iterdir(), key=lambda p: p.name == DATASET_MANIFEST):
+        path.rename(out_dir / path.name)

@@ -1,13 +1,25 @@
-"""One entry point for episodes on disk: a gSCAN dataset.txt or a rosbag2/MCAP bag."""
+"""One entry point for episodes on disk: a gSCAN dataset.txt, a rosbag2/MCAP bag, or a
+directory of per-split bags (`generate --format mcap`).
+
+A per-split bag dataset ends with its manifest (`manifest.json`, the episodes per split),
+written after every bag is closed: a dataset whose manifest names a split without its
+complete bag is refused by every reader (`bag_splits`). Every reader refuses a requested
+split without examples, with the message dataset.txt gives (`require_splits`).
+"""
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
-from typing import Iterable, Iterator
+from typing import Iterable, Iterator, Mapping
 
 from gscan_ros.data.episode import Episode
+from gscan_ros.errors import DatasetFormatError
 
 BAG_METADATA = "metadata.yaml"
+DATASET_MANIFEST = "manifest.json"
+MANIFEST_FORMAT = "gscan_ros/dataset"
+MANIFEST_VERSION = 1
 
 
 def is_bag(path: str | os.PathLike) -> bool:
@@ -24,6 +36,96 @@ def split_bags(path: str | os.PathLike) -> dict[str, Path]:
     return {sub.name: sub for sub in sorted(root.iterdir()) if is_bag(sub)}
 
 
+def require_splits(wanted: Iterable[str], counts: Mapping[str, int], source: str | os.PathLike) -> None:
+    """Refuse requested splits that `source` has no examples of (absent, empty or misspelt),
+    naming them and the splits it has: the one check of dataset.txt and bag readers."""
+    missing = [split for split in wanted if not counts.get(split)]
+    if missing:
+        present = ", ".join(split for split, n in counts.items() if n) or "none"
+        raise DatasetFormatError(f"no examples in split(s) {', '.join(missing)} of {source} (it has: {present})")
+
+
+def write_manifest(folder: str | os.PathLike, counts: Mapping[str, int], header: dict) -> Path:
+    """Write the manifest of a per-split bag dataset: its last file, the mark that it is complete."""
+    from gscan_ros.outputs import write_text
+
+    record = {"format": MANIFEST_FORMAT, "version": MANIFEST_VERSION, "splits": dict(counts), "header": header}
+    return write_text(Path(folder) / DATASET_MANIFEST, json.dumps(record, indent=1) + "\n")
+
+
+def bag_splits(path: str | os.PathLike) -> dict[str, int] | None:
+    """Episodes per split of the bag data at `path`, as their writers counted them; None for
+    dataset.txt data and for a single bag without final counts (its writer has not closed
+    it, or it is not ours).
+
+    A per-split dataset is refused (DatasetFormatError, one line naming what is missing)
+    when its manifest names a split whose bag is absent, unfinished or short, and, without
+    a manifest (written by hand or by an older version), when a bag is unfinished."""
+    from gscan_ros.data.bag_metadata import read_bag_info
+
+    if is_bag(path):
+        info = read_bag_info(path)
+        return info.splits if info.closed and "gscan_ros.splits" in info.custom else None
+    root = Path(path)
+    manifest = _read_manifest(root)
+    bags = split_bags(root)
+    if manifest is None:
+        if not bags:
+            return None
+        infos = {split: read_bag_info(bag) for split, bag in bags.items()}
+        unfinished = [split for split, info in infos.items() if not info.closed]
+        if unfinished:
+            raise DatasetFormatError(f"{root} is incomplete: the bag(s) of {', '.join(unfinished)} were not "
+                                     "finished by their writer (`gscan-ros bag repair` keeps what they hold)")
+        return {split: info.splits.get(split, 0) for split, info in infos.items()}
+    counts = manifest["splits"]
+    problems = []
+    for split, expected in counts.items():
+        if not expected:
+            continue
+        if split not in bags:
+            problems.append(f"{split} missing")
+            continue
+        info = read_bag_info(bags[split])
+        if not info.closed:
+            problems.append(f"{split} unfinished")
+        elif info.splits.get(split) != expected:
+            problems.append(f"{split} holds {info.splits.get(split, 0)} of {expected} episodes")
+    if problems:
+        raise DatasetFormatError(f"{root} is incomplete ({'; '.join(problems)}; its {DATASET_MANIFEST} lists "
+                                 f"{', '.join(s for s, n in counts.items() if n)})")
+    return counts
+
+
+def select_bags(path: str | os.PathLike, splits: Iterable[str] | None = None) -> list[Path] | None:
+    """The bags to read for `splits` (all if None) of the bag data at `path`, after
+    `bag_splits` and `require_splits` accepted them; None for dataset.txt data."""
+    wanted = None if splits is None else list(splits)
+    counts = bag_splits(path)
+    if counts is not None and wanted is not None:
+        require_splits(wanted, counts, path)
+    if is_bag(path):
+        return [Path(path)]
+    if counts is None:
+        return None
+    return [bag for split, bag in split_bags(path).items() if wanted is None or split in wanted]
+
+
+def _read_manifest(root: Path) -> dict | None:
+    from gscan_ros.user_files import read_json
+
+    path = root / DATASET_MANIFEST
+    if not path.is_file():
+        return None
+    record = read_json(path, str(path), DatasetFormatError)
+    counts = record.get("splits") if isinstance(record, dict) else None
+    valid = (isinstance(counts, dict) and record.get("format") == MANIFEST_FORMAT
+             and all(isinstance(n, int) and not isinstance(n, bool) for n in counts.values()))
+    if not valid:
+        raise DatasetFormatError(f"{path} is not a gscan_ros dataset manifest (format {MANIFEST_FORMAT})")
+    return record
+
+
 def iter_episodes(path: str | os.PathLike, splits: Iterable[str] | None = None) -> Iterator[Episode]:
     """Episodes of `splits` (all if None) from dataset.txt (file or its directory), one bag,
     or a directory of per-split bags.
@@ -31,23 +133,16 @@ def iter_episodes(path: str | os.PathLike, splits: Iterable[str] | None = None) 
     Streams in file order; `example_id` is the example's index within its split.
     """
     wanted = None if splits is None else list(splits)
-    if is_bag(path):
+    bags = select_bags(path, wanted)
+    if bags is not None:
         from gscan_ros.data.bag import iter_bag_episodes
 
-        yield from iter_bag_episodes(path, wanted)
+        for bag in bags:
+            yield from iter_bag_episodes(bag, wanted)
         return
-    bags = split_bags(path)
-    if bags:
-        from gscan_ros.data.bag import iter_bag_episodes
-
-        for split, bag in bags.items():
-            if wanted is None or split in wanted:
-                yield from iter_bag_episodes(bag, wanted)
-        return
-    splits = wanted
     from gscan_ros.data.dataset import iter_examples
 
-    for split, index, example in iter_examples(path, splits):
+    for split, index, example in iter_examples(path, wanted):
         yield example.to_episode(split, index)
 
 
@@ -58,8 +153,16 @@ def iter_test_episodes(path: str | os.PathLike, splits: list[str] | None = None)
 
     if splits:
         yield from iter_episodes(path, splits)
-    elif is_bag(path) or split_bags(path):
-        yield from iter_episodes(path, ALL_TEST_SPLITS)
+        return
+    counts = bag_splits(path)
+    if counts is not None:
+        present = [split for split in ALL_TEST_SPLITS if counts.get(split)]
+        if present:
+            yield from iter_episodes(path, present)
+    elif is_bag(path):  # a bag still being written: whatever test episodes it holds so far
+        from gscan_ros.data.bag import iter_bag_episodes
+
+        yield from iter_bag_episodes(path, ALL_TEST_SPLITS)
     else:
         from gscan_ros.data.dataset import Example, iter_raw_examples
 
@@ -75,7 +178,6 @@ def select_test_episodes(path: str | os.PathLike, splits: list[str] | None, max_
     import numpy as np
 
     from gscan_ros.data.splits import ALL_TEST_SPLITS
-    from gscan_ros.errors import DatasetFormatError
 
     by_split: dict[str, list[Episode]] = {}
     for ep in iter_test_episodes(path, splits):

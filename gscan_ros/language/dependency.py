@@ -18,7 +18,7 @@ from typing import Sequence
 
 from nltk.tree import Tree
 
-from gscan_ros.errors import GraphError
+from gscan_ros.errors import GraphError, quoted
 from gscan_ros.language.constituency import tag
 from gscan_ros.language.grammar import parse_tree, phrase_grammar
 from gscan_ros.language.graph import DUMMY_ROOT_WORD, CommandGraph
@@ -87,7 +87,7 @@ def graph_from_dependencies(
     for i in kept:
         head = None if heads[i] == i else heads[i]
         if head not in dependents:
-            raise GraphError(f"word {words[i]!r} depends on a dropped or unknown word (head {head})")
+            raise GraphError(f"word {quoted(words[i])} depends on a dropped or unknown word (head {head})")
         dependents[head].append(i)
     for i in dependents:
         dependents[i].sort(key=lambda d: (_label_rank(labels[d]), labels[d], d))
@@ -100,7 +100,7 @@ def graph_from_dependencies(
         asm.add(ids[i], words[i], f"{concept}_{len(children)}", children, head)
     roots = dependents[None]
     if not roots:
-        raise GraphError(f"dependency analysis of {command!r} has no root")
+        raise GraphError(f"dependency analysis of {quoted(command)} has no root")
     if len(roots) == 1:
         return asm.build(command, parser, ids[roots[0]])
     dummy = asm.add(asm.reserve(), DUMMY_ROOT_WORD, f"{DUMMY_ROOT_WORD}_{len(roots)}",

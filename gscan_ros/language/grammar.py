@@ -23,7 +23,7 @@ from nltk.parse.chart import BottomUpLeftCornerChartParser
 from nltk.parse.generate import generate
 from nltk.tree import Tree
 
-from gscan_ros.errors import CommandError
+from gscan_ros.errors import CommandError, quoted
 from gscan_ros.world.types import (
     ADVERBS,
     COLOR_ADJECTIVES,
@@ -105,10 +105,10 @@ def parse_tree(grammar: CFG, tokens: tuple[str, ...]) -> Tree:
     try:
         tree = next(iter(_chart_parser(grammar).parse(tokens)), None)
     except ValueError as exc:  # a token the grammar has no rule for
-        raise CommandError(f"{' '.join(tokens)!r} is not in the gSCAN command grammar ({exc})") from None
+        raise CommandError(f"{quoted(' '.join(tokens))} is not in the gSCAN command grammar ({exc})") from None
     if tree is None:
         raise CommandError(
-            f"{' '.join(tokens)!r} is not in the gSCAN command grammar "
+            f"{quoted(' '.join(tokens))} is not in the gSCAN command grammar "
             "(expected e.g. 'walk to a red small circle cautiously' or 'push a big square')"
         )
     return tree

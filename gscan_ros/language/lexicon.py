@@ -27,7 +27,7 @@ from typing import Iterable
 import nltk
 from nltk.corpus.reader.wordnet import WordNetCorpusReader
 
-from gscan_ros.errors import LexiconError
+from gscan_ros.errors import LexiconError, quoted
 from gscan_ros.language.tokens import CONTENT_WORDS
 
 DEFAULT_WORDNET_DIR = "/usr/share/wordnet"
@@ -100,7 +100,7 @@ class Lexicon:
     def named(cls, name: str) -> "Lexicon":
         """The lexicon a config's `lexicon: wordnet | none` means."""
         if name not in LEXICONS:
-            raise LexiconError(f"lexicon must be one of {list(LEXICONS)}, got {name!r}")
+            raise LexiconError(f"lexicon must be one of {list(LEXICONS)}, got {quoted(name)}")
         return cls.from_wordnet() if name == "wordnet" else cls.none()
 
     @classmethod

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from typing import Callable
 
-from gscan_ros.errors import CommandError
+from gscan_ros.errors import CommandError, quoted
 from gscan_ros.language.constituency import ConstituencyParser
 from gscan_ros.language.dependency import DependencyParser
 from gscan_ros.language.lexicon import Lexicon
@@ -38,5 +38,5 @@ def get_parser(name: str, lexicon: Lexicon | None = None) -> Parser:
     try:
         factory = _FACTORIES[name]
     except KeyError:
-        raise CommandError(f"unknown parser {name!r}; available: {', '.join(_FACTORIES)}") from None
+        raise CommandError(f"unknown parser {quoted(name)}; available: {', '.join(_FACTORIES)}") from None
     return factory(lexicon if lexicon is not None else Lexicon.none())

@@ -2,7 +2,7 @@
 
 Layout (format 1)::
 
-    {"format": 1, "kind": "compositional" | "seq2seq",
+    {"format": 1, "kind": "compositional" | "seq2seq" | "auxloss" | "lcgn",
      "model_config": {...}, "vocabulary": {...}, "lexicon": {...}, "parser": "semantic",
      "state_dict": {...}, "step": int, "metrics": {...},
      # training checkpoints only (stripped from shipped models):
@@ -15,17 +15,23 @@ fit the model it is loaded into raises `CheckpointError` naming the mismatch.
 from __future__ import annotations
 
 import os
+import zipfile
 from dataclasses import asdict, fields
 from pathlib import Path
 
 import torch
 from torch import nn
 
-from gscan_ros.errors import CheckpointError, LexiconError
+from gscan_ros.errors import CheckpointError, LexiconError, quoted, shortened
 from gscan_ros.language.lexicon import Lexicon
 
 FORMAT = 1
-KINDS = ("compositional", "seq2seq")
+KINDS = ("compositional", "seq2seq", "auxloss", "lcgn")
+MAX_CHECKPOINT_BYTES = 1 << 30
+"""Most bytes a checkpoint may hold, its file and its tensors as its zip declares them: the
+shipped model holds 1.1 MB, a training checkpoint with its optimizer state a few MB."""
+MAX_CHECKPOINT_ENTRIES = 10_000
+"""Most files in a checkpoint's zip: one per tensor and a few more (28 in the shipped model)."""
 
 
 class SerializableConfig:
@@ -39,28 +45,46 @@ class SerializableConfig:
     def from_dict(cls, d: dict):
         unknown = sorted(set(d) - {f.name for f in fields(cls)})
         if unknown:
-            raise CheckpointError(f"unknown {cls.__name__} keys {unknown}")
+            raise CheckpointError(f"unknown {cls.__name__} keys {quoted(unknown)}")
         return cls(**d)
 
 
-def build_model(kind: str, model_config: dict, vocabulary: dict) -> nn.Module:
-    """A fresh model of `kind` from plain-dict config and vocabulary."""
+def model_classes(kind: str) -> tuple[type, type]:
+    """The model class of `kind` and its config dataclass; CheckpointError for an unknown kind."""
     if kind == "compositional":
         from gscan_ros.model.compositional import CompositionalNetwork, ModelConfig
-        from gscan_ros.model.modules import ModuleTable
 
-        return CompositionalNetwork(ModelConfig.from_dict(model_config), ModuleTable.from_list(vocabulary["modules"]))
+        return CompositionalNetwork, ModelConfig
     if kind == "seq2seq":
         from gscan_ros.model.seq2seq import Seq2Seq, Seq2SeqConfig
 
-        return Seq2Seq(Seq2SeqConfig.from_dict(model_config), list(vocabulary["tokens"]))
-    raise CheckpointError(f"unknown model kind {kind!r}; expected one of {KINDS}")
+        return Seq2Seq, Seq2SeqConfig
+    if kind == "auxloss":
+        from gscan_ros.model.auxloss import AuxLoss, AuxLossConfig
+
+        return AuxLoss, AuxLossConfig
+    if kind == "lcgn":
+        from gscan_ros.model.lcgn import LCGN, LCGNConfig
+
+        return LCGN, LCGNConfig
+    raise CheckpointError(f"unknown model kind {quoted(kind)}; expected one of {KINDS}")
+
+
+def build_model(kind: str, model_config: dict, vocabulary: dict) -> nn.Module:
+    """A fresh model of `kind` from plain-dict config and vocabulary (command tokens, or the
+    compositional network's modules)."""
+    model_class, config_class = model_classes(kind)
+    if kind == "compositional":
+        from gscan_ros.model.modules import ModuleTable
+
+        return model_class(config_class.from_dict(model_config), ModuleTable.from_list(vocabulary["modules"]))
+    return model_class(config_class.from_dict(model_config), list(vocabulary["tokens"]))
 
 
 def model_kind(model: nn.Module) -> str:
     from gscan_ros.model.compositional import CompositionalNetwork
 
-    return "compositional" if isinstance(model, CompositionalNetwork) else "seq2seq"
+    return "compositional" if isinstance(model, CompositionalNetwork) else model.kind
 
 
 def model_vocabulary(model: nn.Module) -> dict:
@@ -91,7 +115,12 @@ def save_checkpoint(path: str | os.PathLike, ckpt: dict) -> None:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(path.suffix + ".tmp")
-    torch.save(ckpt, tmp)
+    try:
+        torch.save(ckpt, tmp)
+    except (OSError, RuntimeError) as exc:  # torch reports a full disk as a RuntimeError
+        tmp.unlink(missing_ok=True)
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc).strip().splitlines()[-1]
+        raise CheckpointError(f"cannot write checkpoint {str(path)!r}: {shortened(reason)}") from None
     os.replace(tmp, path)
 
 
@@ -100,6 +129,7 @@ def read_checkpoint(path: str | os.PathLike) -> dict:
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"checkpoint {str(path)!r} does not exist")
+    _check_archive(path)
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises many types for corrupt/unsafe files
@@ -113,6 +143,33 @@ def read_checkpoint(path: str | os.PathLike) -> dict:
     return ckpt
 
 
+def _check_archive(path: Path) -> None:
+    """Refuse, before torch unpacks anything, a file that is not a zip archive or whose
+    sizes pass the bounds: torch allocates every tensor at the size the zip declares, so a
+    5 MB file that declares 4 GB of tensors would otherwise cost 4 GB before any check."""
+    where = f"checkpoint {str(path)!r}"
+    try:
+        size = path.stat().st_size
+        if size > MAX_CHECKPOINT_BYTES:
+            raise CheckpointError(f"{where} has {size:,} bytes, more than the {MAX_CHECKPOINT_BYTES:,} allowed")
+        with open(path, "rb") as f:
+            # zipfile's reader of the end record (zip64 too): the entry count, read before
+            # ZipFile lists the entries (~500 bytes of memory each)
+            end = zipfile._EndRecData(f)
+        if end is None:
+            raise CheckpointError(f"{where} is not a checkpoint (torch.save writes a zip archive)")
+        entries = end[zipfile._ECD_ENTRIES_TOTAL]
+        if entries > MAX_CHECKPOINT_ENTRIES:
+            raise CheckpointError(f"{where} holds {entries:,} files, more than the {MAX_CHECKPOINT_ENTRIES:,} allowed")
+        with zipfile.ZipFile(path) as archive:
+            declared = sum(info.file_size for info in archive.infolist())
+    except (OSError, zipfile.BadZipFile) as exc:
+        raise CheckpointError(f"cannot read {where}: {exc}") from None
+    if declared > MAX_CHECKPOINT_BYTES:
+        raise CheckpointError(f"{where} declares {declared:,} bytes of content, more than the "
+                              f"{MAX_CHECKPOINT_BYTES:,} allowed")
+
+
 def validate_checkpoint(ckpt: dict, path: str | os.PathLike) -> None:
     """Refuse, at load, a checkpoint no working model can come from: an unknown kind, an
     empty or malformed vocabulary, a config with non-positive sizes, NaN/inf weights (which
@@ -120,21 +177,19 @@ def validate_checkpoint(ckpt: dict, path: str | os.PathLike) -> None:
     where = f"checkpoint {str(path)!r}"
     kind = ckpt["kind"]
     if kind not in KINDS:
-        raise CheckpointError(f"{where}: unknown model kind {kind!r}; expected one of {KINDS}")
+        raise CheckpointError(f"{where}: unknown model kind {quoted(kind)}; expected one of {KINDS}")
     entries = "modules" if kind == "compositional" else "tokens"
     vocabulary = ckpt["vocabulary"].get(entries) if isinstance(ckpt["vocabulary"], dict) else None
     if not isinstance(vocabulary, list) or not vocabulary:
         raise CheckpointError(f"{where}: empty vocabulary (no {entries})")
     if kind == "compositional":
-        from gscan_ros.model.compositional import ModelConfig as config_class
         from gscan_ros.model.modules import ModuleTable
 
         for spec in ModuleTable.from_list(vocabulary).specs:
             if spec.arity < 0 or spec.num_heads < 1:
-                raise CheckpointError(f"{where}: module {spec.key!r} has arity {spec.arity} and "
+                raise CheckpointError(f"{where}: module {quoted(spec.key)} has arity {spec.arity} and "
                                       f"{spec.num_heads} heads (need >= 0 and >= 1)")
-    else:
-        from gscan_ros.model.seq2seq import Seq2SeqConfig as config_class
+    _, config_class = model_classes(kind)
     try:
         config_class.from_dict(ckpt["model_config"])
     except (TypeError, ValueError, AttributeError) as exc:
@@ -144,9 +199,9 @@ def validate_checkpoint(ckpt: dict, path: str | os.PathLike) -> None:
         raise CheckpointError(f"{where}: state_dict holds no tensors")
     for name, tensor in state.items():
         if not isinstance(tensor, torch.Tensor):
-            raise CheckpointError(f"{where}: state_dict entry {name!r} is not a tensor")
+            raise CheckpointError(f"{where}: state_dict entry {quoted(name)} is not a tensor")
         if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
-            raise CheckpointError(f"{where}: tensor {name!r} holds NaN or infinite values")
+            raise CheckpointError(f"{where}: tensor {quoted(name)} holds NaN or infinite values")
 
 
 def _load_problem(exc: Exception) -> str:
@@ -192,7 +247,7 @@ def restore_model(ckpt: dict, model: nn.Module | None = None) -> nn.Module:
             )
     extra = sorted(set(state) - set(own))
     if extra:
-        raise CheckpointError(f"checkpoint has tensors the model lacks: {extra[:5]}")
+        raise CheckpointError(f"checkpoint has tensors the model lacks: {quoted(extra)}")
     model.load_state_dict(state)
     return model
 
@@ -210,7 +265,7 @@ def _vocabulary_diff(mine: dict, theirs: dict) -> str:
 
     only_model, only_ckpt = sorted(keys(mine) - keys(theirs)), sorted(keys(theirs) - keys(mine))
     if only_model or only_ckpt:
-        detail = f"model-only {only_model[:5]}, checkpoint-only {only_ckpt[:5]}"
+        detail = f"model-only {quoted(only_model)}, checkpoint-only {quoted(only_ckpt)}"
     else:
         detail = "arity/heads differ"
     return f"checkpoint vocabulary does not match the model's ({detail})"

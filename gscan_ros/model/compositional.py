@@ -33,6 +33,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from gscan_ros.errors import quoted
 from gscan_ros.language.graph import CommandGraph
 from gscan_ros.model.checkpoint import SerializableConfig
 from gscan_ros.model.layout import Bound, Layout, child_maps
@@ -98,34 +99,34 @@ class ModelConfig(SerializableConfig):
 
     def __post_init__(self) -> None:
         if self.message not in MESSAGES:
-            raise ValueError(f"message must be one of {MESSAGES}, got {self.message!r}")
+            raise ValueError(f"message must be one of {MESSAGES}, got {quoted(self.message)}")
         if self.attention_state not in ATTENTION_STATES:
-            raise ValueError(f"attention_state must be one of {ATTENTION_STATES}, got {self.attention_state!r}")
+            raise ValueError(f"attention_state must be one of {ATTENTION_STATES}, got {quoted(self.attention_state)}")
         if self.size_map not in SIZE_MAPS:
-            raise ValueError(f"size_map must be one of {SIZE_MAPS}, got {self.size_map!r}")
+            raise ValueError(f"size_map must be one of {SIZE_MAPS}, got {quoted(self.size_map)}")
         if self.overlap not in OVERLAPS:
-            raise ValueError(f"overlap must be one of {OVERLAPS}, got {self.overlap!r}")
+            raise ValueError(f"overlap must be one of {OVERLAPS}, got {quoted(self.overlap)}")
         if self.attention_state == "add" and not self.uses_attention:
             raise ValueError("attention_state='add' needs attention maps; message='state' has none")
         # Sizes come from YAML and checkpoints: a list, a float or a negative fails here, not in torch.
         for name in ("grid_size", "in_channels", "cnn_channels", "att_dim", "rnn_layers", "rnn_dim", "num_actions"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+                raise ValueError(f"{name} must be a positive integer, got {quoted(value)}")
         if self.grid_size not in SUPPORTED_GRID_SIZES:
             raise ValueError(f"grid_size {self.grid_size} is not supported "
                              f"({SUPPORTED_GRID_SIZES[0]} to {SUPPORTED_GRID_SIZES[-1]})")
         kernels = self.cnn_kernels
         if not (isinstance(kernels, (list, tuple)) and kernels
                 and all(isinstance(k, int) and not isinstance(k, bool) and k > 0 for k in kernels)):
-            raise ValueError(f"cnn_kernels must be a non-empty list of positive integers, got {kernels!r}")
+            raise ValueError(f"cnn_kernels must be a non-empty list of positive integers, got {quoted(kernels)}")
         object.__setattr__(self, "cnn_kernels", tuple(kernels))
         if any(k % 2 == 0 for k in self.cnn_kernels):
-            raise ValueError(f"cnn_kernels must be odd for 'same' padding, got {self.cnn_kernels}")
+            raise ValueError(f"cnn_kernels must be odd for 'same' padding, got {quoted(self.cnn_kernels)}")
         if not (isinstance(self.cnn_dropout, (int, float)) and 0 <= self.cnn_dropout < 1):
-            raise ValueError(f"cnn_dropout must be a number in [0, 1), got {self.cnn_dropout!r}")
+            raise ValueError(f"cnn_dropout must be a number in [0, 1), got {quoted(self.cnn_dropout)}")
         if not (isinstance(self.antonym_weight, (int, float)) and 0 <= self.antonym_weight < math.inf):
-            raise ValueError(f"antonym_weight must be a finite number >= 0, got {self.antonym_weight!r}")
+            raise ValueError(f"antonym_weight must be a finite number >= 0, got {quoted(self.antonym_weight)}")
 
     @property
     def feature_dim(self) -> int:

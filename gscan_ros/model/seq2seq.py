@@ -8,6 +8,10 @@ action's embedding, a Bahdanau context over the command (query h) and one over t
 (query tanh(W [h; command context])), and the logits come from the embedding, the new
 state and both contexts through two bias-free linear maps. Teacher forcing feeds gold
 previous actions; closed-loop decoding feeds its own.
+
+`AttentionDecoderModel` is this decoder with teacher forcing and closed-loop decoding, for
+every model that decodes this way (`auxloss.AuxLoss`, `lcgn.LCGN`); `Seq2Seq` adds the
+baseline's encoders.
 """
 from __future__ import annotations
 
@@ -19,7 +23,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from gscan_ros.errors import CommandError
+from gscan_ros.errors import CommandError, quoted
 from gscan_ros.model.checkpoint import SerializableConfig
 from gscan_ros.model.compositional import ModelConfig, VisualEncoder
 from gscan_ros.model.sparse_encoder import sparse_states
@@ -56,20 +60,27 @@ class Seq2SeqConfig(SerializableConfig):
     """Side of the square grid the observations have (6 compositional, 12 for split I)."""
 
     def __post_init__(self) -> None:
-        # Sizes come from YAML and checkpoints: a list, a float or a negative fails here, not in torch.
-        for name in ("embedding_dim", "hidden", "cnn_channels", "num_actions", "grid_size"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be a positive integer, got {value!r}")
-        kernels = self.cnn_kernels
-        if not (isinstance(kernels, (list, tuple)) and kernels
-                and all(isinstance(k, int) and not isinstance(k, bool) and k > 0 and k % 2 for k in kernels)):
-            raise ValueError(f"cnn_kernels must be a non-empty list of odd positive integers, got {kernels!r}")
-        object.__setattr__(self, "cnn_kernels", tuple(kernels))
-        for name in ("dropout", "cnn_dropout"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and 0 <= value < 1):
-                raise ValueError(f"{name} must be a number in [0, 1), got {value!r}")
+        check_settings(self, ("embedding_dim", "hidden", "cnn_channels", "num_actions", "grid_size"),
+                       ("dropout", "cnn_dropout"))
+
+
+def check_settings(cfg, sizes: tuple[str, ...], rates: tuple[str, ...]) -> None:
+    """ValueError unless the settings `sizes` of `cfg` are positive integers, its `rates` numbers
+    in [0, 1) and its `cnn_kernels` odd positive integers (stored as a tuple). Settings come
+    from YAML and checkpoints: a list, a float or a negative fails here, not in torch."""
+    for name in sizes:
+        value = getattr(cfg, name)
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"{name} must be a positive integer, got {quoted(value)}")
+    kernels = cfg.cnn_kernels
+    if not (isinstance(kernels, (list, tuple)) and kernels
+            and all(isinstance(k, int) and not isinstance(k, bool) and k > 0 and k % 2 for k in kernels)):
+        raise ValueError(f"cnn_kernels must be a non-empty list of odd positive integers, got {quoted(kernels)}")
+    object.__setattr__(cfg, "cnn_kernels", tuple(kernels))
+    for name in rates:
+        value = getattr(cfg, name)
+        if not (isinstance(value, (int, float)) and 0 <= value < 1):
+            raise ValueError(f"{name} must be a number in [0, 1), got {quoted(value)}")
 
 
 @dataclass
@@ -99,7 +110,7 @@ class DecoderState:
         return DecoderState(*(getattr(self, f.name)[:n] for f in dataclasses.fields(self)))
 
 
-class _Additive(nn.Module):
+class AdditiveAttention(nn.Module):
     """Bahdanau attention as MM's `Attention`: v·tanh(q(query) + k(key)), no biases, and the
     retrieved values are the projected keys themselves. The keys do not change while a
     sequence decodes, so `k(keys)` is computed once per sequence (`_start`) and passed in."""
@@ -110,35 +121,40 @@ class _Additive(nn.Module):
         self.k = nn.Linear(key, hidden, bias=False)
         self.v = nn.Linear(hidden, 1, bias=False)
 
-    def forward(self, query, projected_keys, mask=None):
+    def scores(self, query, projected_keys, mask=None):
+        """The logit of each key [n, keys] (-inf where `mask` is False)."""
         score = self.v(torch.tanh(self.q(query)[:, None] + projected_keys))[..., 0]
-        if mask is not None:
-            score = score.masked_fill(~mask, float("-inf"))
-        weights = torch.softmax(score, -1)
+        return score if mask is None else score.masked_fill(~mask, float("-inf"))
+
+    def forward(self, query, projected_keys, mask=None):
+        """The retrieved value [n, hidden] and the attention weights [n, keys]."""
+        weights = torch.softmax(self.scores(query, projected_keys, mask), -1)
         return torch.bmm(weights[:, None], projected_keys)[:, 0], weights
 
 
-class Seq2Seq(nn.Module):
-    """MM's `Model` with its `BahdanauAttentionDecoderRNN` (conditional attention on)."""
+def packed_lstm(lstm: nn.LSTM, embedded: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """A bidirectional `lstm` over padded token embeddings [n, tokens, E] on packed sequences, so
+    padding never enters it: outputs [n, tokens, 2H] (zero on padding) and final states [2, n, H]."""
+    packed = nn.utils.rnn.pack_padded_sequence(embedded, mask.sum(1).cpu(), batch_first=True, enforce_sorted=False)
+    out, (h_n, _) = lstm(packed)
+    out, _ = nn.utils.rnn.pad_packed_sequence(out, batch_first=True, total_length=mask.shape[1])
+    return out, h_n
 
-    def __init__(self, cfg: Seq2SeqConfig, tokens: list[str]):
+
+class AttentionDecoderModel(nn.Module):
+    """What the models with MM's decoder share (the baseline, AuxLoss, LCGN): command tokens,
+    teacher forcing, closed-loop decoding and the batch they train on.
+
+    A subclass builds its encoders and the decoder's modules — `action_embed`, `text_att`,
+    `world_query`, `world_att`, `decoder` (an LSTMCell), `out` and `drop` (on the previous
+    action's embedding) — and implements `_start`: a batch of commands and initial states
+    -> the `DecoderState` decoding starts from.
+    """
+
+    def __init__(self, cfg: SerializableConfig, tokens: list[str]):
         super().__init__()
         self.cfg, self.tokens = cfg, list(tokens)
         self.index = {t: i + 1 for i, t in enumerate(self.tokens)}  # 0 = padding
-        E, H = cfg.embedding_dim, cfg.hidden
-        self.embed = nn.Embedding(len(self.tokens) + 1, E, padding_idx=0)
-        self.encoder = nn.LSTM(E, H, batch_first=True, bidirectional=True)
-        self.enc_to_dec = nn.Linear(H, H)  # the encoder's final state -> the decoder's initial (h, c)
-        self.visual = VisualEncoder(ModelConfig(cnn_kernels=cfg.cnn_kernels, cnn_channels=cfg.cnn_channels,
-                                                cnn_dropout=cfg.cnn_dropout, grid_size=cfg.grid_size))
-        self.action_embed = nn.Embedding(cfg.num_actions + 1, H)  # last id = start of sequence
-        self.text_att = _Additive(H, H, H)
-        self.world_query = nn.Linear(2 * H, H)  # conditional attention: tanh(W [h; command context])
-        self.world_att = _Additive(H, self.visual.cfg.feature_dim, H)
-        self.decoder = nn.LSTMCell(3 * H, H)
-        self.pre_out = nn.Linear(4 * H, H, bias=False)
-        self.out = nn.Linear(H, cfg.num_actions, bias=False)
-        self.drop = nn.Dropout(cfg.dropout)
 
     @property
     def sos(self) -> int:
@@ -148,9 +164,9 @@ class Seq2Seq(nn.Module):
     def device(self) -> torch.device:
         return self.out.weight.device
 
-    def encode_commands(self, commands: list[str]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Encoder outputs [n, tokens, H] and final state [n, H] (both directions summed), and
-        the token mask. The LSTM runs on packed sequences, so padding never enters it."""
+    def token_ids(self, commands: list[str]) -> torch.Tensor:
+        """[n, tokens] vocabulary ids of the commands' tokens, 0-padded; CommandError on a token
+        the model does not know."""
         from gscan_ros.language.tokens import tokenize
 
         ids = []
@@ -161,19 +177,14 @@ class Seq2Seq(nn.Module):
                 raise CommandError(f"tokens {unknown} are not in the model's vocabulary")
             ids.append([self.index[t] for t in toks])
         width = max(len(i) for i in ids)
-        padded = torch.tensor([i + [0] * (width - len(i)) for i in ids], device=self.device)
-        lengths = torch.tensor([len(i) for i in ids])
-        packed = nn.utils.rnn.pack_padded_sequence(self.drop(self.embed(padded)), lengths, batch_first=True,
-                                                   enforce_sorted=False)
-        out, (h_n, _) = self.encoder(packed)
-        out, _ = nn.utils.rnn.pad_packed_sequence(out, batch_first=True, total_length=width)
-        H = self.cfg.hidden
-        return out[..., :H] + out[..., H:], h_n[0] + h_n[1], padded > 0
+        return torch.tensor([i + [0] * (width - len(i)) for i in ids], device=self.device)
 
-    def _start(self, commands, first_states) -> DecoderState:
-        text, final, mask = self.encode_commands(commands)
-        world = self.visual(*sparse_states(first_states, self.device))
-        h0 = torch.tanh(self.enc_to_dec(final))  # MM fills both the state and the cell with it
+    def _start(self, commands: list[str], first_states: np.ndarray) -> DecoderState:
+        """The state decoding `commands` in their initial states `first_states` starts from."""
+        raise NotImplementedError
+
+    def decoder_state(self, text, mask, world, h0) -> DecoderState:
+        """The state decoding starts from: the attentions' keys and (h, c) = (h0, h0), as MM fills both."""
         return DecoderState(self.text_att.k(text), mask, self.world_att.k(world), h0, h0)
 
     def _decode(self, st: DecoderState, prev: torch.Tensor) -> torch.Tensor:
@@ -182,7 +193,12 @@ class Seq2Seq(nn.Module):
         text_ctx, _ = self.text_att(st.h, st.text_keys, st.text_mask)
         world_ctx, _ = self.world_att(torch.tanh(self.world_query(torch.cat([st.h, text_ctx], -1))), st.world_keys)
         st.h, st.c = self.decoder(torch.cat([emb, text_ctx, world_ctx], -1), (st.h, st.c))
-        return self.out(self.pre_out(torch.cat([emb, st.h, text_ctx, world_ctx], -1)))
+        return self._readout(emb, st.h, text_ctx, world_ctx)
+
+    def _readout(self, emb, h, text_ctx, world_ctx) -> torch.Tensor:
+        """MM's output layer: the embedding, the new state and both contexts through two
+        bias-free linear maps."""
+        return self.out(self.pre_out(torch.cat([emb, h, text_ctx, world_ctx], -1)))
 
     def make_batch(self, store, ids) -> Seq2SeqBatch:
         """Teacher-forcing inputs from an EpisodeStore: commands, initial states, targets."""
@@ -209,8 +225,7 @@ class Seq2Seq(nn.Module):
         valid = targets >= 0
         order = torch.argsort(lengths, descending=True, stable=True)
         active = torch.bincount(lengths, minlength=targets.shape[1] + 1).flip(0).cumsum(0).flip(0)[1:].tolist()
-        rows = order.tolist()
-        st = self._start([batch.commands[i] for i in rows], np.asarray(batch.first_states)[rows])
+        st, start_loss = self._teacher_start(batch, order.tolist())
         gold = targets.index_select(0, order)
         prev = torch.full((len(targets),), self.sos, dtype=torch.long, device=self.device)
         logits_sorted = []
@@ -222,17 +237,63 @@ class Seq2Seq(nn.Module):
         logits_t = torch.stack(logits_sorted, 1).index_select(0, torch.argsort(order))
         nll = F.cross_entropy(logits_t[valid], targets[valid], reduction="none")
         per_example = nll.new_zeros(len(targets)).index_add(0, valid.nonzero()[:, 0], nll) / valid.sum(1)
-        return TeacherOutput(per_example.mean(), logits_t[valid], nll, torch.zeros_like(nll))
+        return TeacherOutput(per_example.mean() + start_loss, logits_t[valid], nll, torch.zeros_like(nll))
+
+    def _teacher_start(self, batch: Seq2SeqBatch, rows: list[int]) -> tuple[DecoderState, torch.Tensor | float]:
+        """The decoder state of the batch's `rows`, in that order, and the loss of what the
+        start predicts besides it: nothing here (AuxLoss: the target's location)."""
+        return self._start([batch.commands[i] for i in rows], np.asarray(batch.first_states)[rows]), 0.0
 
     def rollout(self, graphs) -> "Seq2SeqRollout":
         return Seq2SeqRollout(self, [g.command for g in graphs])
+
+
+class Seq2Seq(AttentionDecoderModel):
+    """MM's `Model` with its `BahdanauAttentionDecoderRNN` (conditional attention on)."""
+
+    kind = "seq2seq"
+
+    def __init__(self, cfg: Seq2SeqConfig, tokens: list[str]):
+        super().__init__(cfg, tokens)
+        E, H = cfg.embedding_dim, cfg.hidden
+        self.embed = nn.Embedding(len(self.tokens) + 1, E, padding_idx=0)
+        self.encoder = nn.LSTM(E, H, batch_first=True, bidirectional=True)
+        self.enc_to_dec = nn.Linear(H, H)  # the encoder's final state -> the decoder's initial (h, c)
+        self.visual = VisualEncoder(ModelConfig(cnn_kernels=cfg.cnn_kernels, cnn_channels=cfg.cnn_channels,
+                                                cnn_dropout=cfg.cnn_dropout, grid_size=cfg.grid_size))
+        self.action_embed = nn.Embedding(cfg.num_actions + 1, H)  # last id = start of sequence
+        self.text_att = AdditiveAttention(H, H, H)
+        self.world_query = nn.Linear(2 * H, H)  # conditional attention: tanh(W [h; command context])
+        self.world_att = AdditiveAttention(H, self.visual.cfg.feature_dim, H)
+        self.decoder = nn.LSTMCell(3 * H, H)
+        self.pre_out = nn.Linear(4 * H, H, bias=False)
+        self.out = nn.Linear(H, cfg.num_actions, bias=False)
+        self.drop = nn.Dropout(cfg.dropout)
+
+    def encode_commands(self, commands: list[str]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Encoder outputs [n, tokens, H] and final state [n, H] (both directions summed), and
+        the token mask."""
+        padded = self.token_ids(commands)
+        mask = padded > 0
+        out, h_n = packed_lstm(self.encoder, self.drop(self.embed(padded)), mask)
+        H = self.cfg.hidden
+        return out[..., :H] + out[..., H:], h_n[0] + h_n[1], mask
+
+    def encode(self, commands: list[str], first_states: np.ndarray):
+        """`encode_commands` and the cell features [n, cells, F] of the initial states."""
+        text, final, mask = self.encode_commands(commands)
+        return text, final, mask, self.visual(*sparse_states(first_states, self.device))
+
+    def _start(self, commands, first_states) -> DecoderState:
+        text, final, mask, world = self.encode(commands, first_states)
+        return self.decoder_state(text, mask, world, torch.tanh(self.enc_to_dec(final)))
 
 
 class Seq2SeqRollout:
     """Closed-loop greedy decoding: the first observation is encoded, later ones are
     ignored; each step feeds back the step before's argmax action."""
 
-    def __init__(self, model: Seq2Seq, commands: list[str]):
+    def __init__(self, model: AttentionDecoderModel, commands: list[str]):
         self.model, self.commands, self.state = model, commands, None
         self.prev = torch.full((len(commands),), model.sos, dtype=torch.long, device=model.device)
         self.words = [[] for _ in commands]  # no per-word attention maps

@@ -1,9 +1,11 @@
 """GscanCommander: drive a running gscan_ros stack by tasks, like nav2_simple_commander's BasicNavigator.
 
 A client node for scripts, the demo, benchmarks and tests: it sends commands on
-`command`, calls `reset_world`, and turns what the stack publishes (`action`, `status`,
-`command_graph`, attention maps) into one `EpisodeResult` per command. It holds no
-domain logic: the outcome is read from the nodes' own status lines (docs/ros.md).
+`command`, calls `reset_world`, and turns what the stack publishes into one
+`EpisodeResult` per command. It holds no domain logic: the outcome is the one the
+policy (or the parser, for a command it refuses) reports on `episode_status`, and the
+episode's actions are those the policy published between its ACTIVE report and its end
+(docs/ros.md "Episodes"), so it needs no node names and works under renames.
 
     rclpy.init()
     commander = GscanCommander()
@@ -24,6 +26,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
 import rclpy
+from actionlib_msgs.msg import GoalStatus
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from sensor_msgs.msg import Image
@@ -31,34 +34,32 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from gscan_ros import interface
+from gscan_ros.data import episode_status as es
 from gscan_ros.errors import GscanError
 from gscan_ros.language.graph import CommandGraph
 from gscan_ros.nodes.common import (
     ACTION,
     COMMAND,
     COMMAND_GRAPH,
+    EPISODE_STATUS,
     OBSERVATION,
     RESET_WORLD,
     STATUS,
     VIEWER_LOG_QOS,
-    StatusReporter,
     attention_topic,
     qos_profile,
     quote,
 )
 from gscan_ros.world.types import Action
-from msg_adapters import msg_to_action, msg_to_graph
+from msg_adapters import msg_to_action, msg_to_episode_status, msg_to_graph
 
 READY_TIMEOUT_S = 60.0
-EOS_GRACE_S = 5.0  # after <eos>, how long to wait for the command graph and the policy's closing status line
+# After the end report: how long to wait for the episode's last actions and its graph
+# (topics are not ordered with each other).
+LATE_GRACE_S = 5.0
 POLL_S = 0.02
-# Who listens where, by default node name (docs/ros.md): what `wait_until_ready` waits for.
-STACK_SUBSCRIBERS = {
-    COMMAND: "parser_node",
-    COMMAND_GRAPH: "policy_node",
-    OBSERVATION: "policy_node",
-    ACTION: "world_simulator_node",
-}
+# Topics the stack must be listening on before a command is sent (`wait_until_ready`).
+STACK_INPUTS = (COMMAND, COMMAND_GRAPH, OBSERVATION, ACTION)
 
 
 class Outcome(enum.StrEnum):
@@ -66,10 +67,14 @@ class Outcome(enum.StrEnum):
 
     SUCCEEDED = "succeeded"  # the policy ended it with its own <eos>
     MAX_STEPS = "max_steps"  # the policy forced <eos> after max_steps actions
-    ABORTED = "aborted"  # a world reset ended it (no <eos>)
-    PREEMPTED = "preempted"  # another command replaced it
+    PREEMPTED = "preempted"  # another command or a world reset replaced it (`reason` says which)
     REJECTED = "rejected"  # the parser (or the policy) refused the command
     TIMEOUT = "timeout"  # no end within the timeout
+
+
+# The policy's reported outcomes, as the commander names them.
+OUTCOMES = {es.COMPLETE: Outcome.SUCCEEDED, es.CUT: Outcome.MAX_STEPS, es.PREEMPTED: Outcome.PREEMPTED,
+            es.REJECTED: Outcome.REJECTED}
 
 
 @dataclass
@@ -82,7 +87,8 @@ class EpisodeResult:
     graph: CommandGraph | None = None  # what the parser understood (canonical command, typed text)
     elapsed: float = 0.0  # seconds from sending the command to the end
     status: list[str] = field(default_factory=list)  # every status line received meanwhile
-    reason: str = ""  # the status line that decided a rejection, abort or preemption
+    reason: str = ""  # the end report's text: why it was rejected, cut or preempted
+    episode_id: str = ""  # the policy's id of the episode (its `episode_status` goal id)
     sent_ns: int = 0  # wall clock when the command was published
     action_times_ns: list[int] = field(default_factory=list)  # when each action was received (DDS)
     attention: dict[str, list[Image]] = field(default_factory=dict)  # word -> mono8 maps, for watched words
@@ -124,11 +130,13 @@ class GscanCommander(Node):
         self.status_log: list[str] = []  # every status line since the commander started
         self._actions: list[tuple[int, int, Action]] = []  # (source ns, received ns, action) since the last send
         self._graphs: list[tuple[int, String]] = []  # (source ns, msg) since the last send
+        self._reports: list[tuple[int, es.EpisodeStatus]] = []  # (source ns, report) since the last send
         self._attention: dict[str, list[tuple[int, Image]]] = {}
         self._command_pub = self.create_publisher(String, COMMAND, qos_profile(interface.COMMAND))
         self._reset_client = self.create_client(Trigger, RESET_WORLD)
         self.create_subscription(String, ACTION, self._on_action, qos_profile(interface.ACTION))
         self.create_subscription(String, STATUS, self._on_status, qos_profile(interface.STATUS))
+        self.create_subscription(GoalStatus, EPISODE_STATUS, self._on_report, qos_profile(interface.EPISODE_STATUS))
         self.create_subscription(String, COMMAND_GRAPH, self._on_graph,
                                  qos_profile(interface.COMMAND_GRAPH, depth=interface.LOG_DEPTH))
         self.watch_attention(attention_words)
@@ -170,6 +178,12 @@ class GscanCommander(Node):
     def _on_graph(self, msg: String, info: dict) -> None:
         self._graphs.append((info["source_timestamp"], msg))
 
+    def _on_report(self, msg: GoalStatus, info: dict) -> None:
+        try:
+            self._reports.append((info["source_timestamp"], msg_to_episode_status(msg)))
+        except GscanError:
+            return  # not a report of the stack's
+
     # -- waiting -----------------------------------------------------------------------
     def spin_until(self, condition: Callable[[], bool], timeout: float, what: str) -> None:
         """Spin until `condition()` holds; GscanError after `timeout` seconds."""
@@ -186,16 +200,20 @@ class GscanCommander(Node):
             self._executor.spin_once(timeout_sec=min(left, POLL_S))
 
     def wait_until_ready(self, timeout: float = READY_TIMEOUT_S) -> None:
-        """Wait until the parser, policy and world simulator are connected and `reset_world`
-        is served: a command sent now is parsed, followed and executed."""
-        def ready() -> bool:
-            for topic, node in STACK_SUBSCRIBERS.items():
-                infos = self.get_subscriptions_info_by_topic(self.resolve_topic_name(topic))
-                if node not in {i.node_name for i in infos}:
-                    return False
-            return self._command_pub.get_subscription_count() > 0 and self._reset_client.service_is_ready()
+        """Wait until something listens on the stack's inputs (command, command graph,
+        observation, action) and `reset_world` is served: a command sent now is parsed,
+        followed and executed. Any node names do: renamed or namespaced stacks too."""
+        me = self.get_name()
 
-        self.spin_until(ready, timeout, "the gscan_ros stack (parser_node, policy_node, world_simulator_node)")
+        def ready() -> bool:
+            for topic in STACK_INPUTS:
+                infos = self.get_subscriptions_info_by_topic(self.resolve_topic_name(topic))
+                if not any(i.node_name != me for i in infos):
+                    return False
+            return self._reset_client.service_is_ready()
+
+        self.spin_until(ready, timeout, "the gscan_ros stack (subscribers on command, command_graph, observation, "
+                                        "action and the reset_world service)")
 
     def wait_for_status(self, prefix: str, timeout: float) -> str:
         """The first status line (since the commander started) that starts with `prefix`."""
@@ -219,6 +237,7 @@ class GscanCommander(Node):
                             "a subscriber on 'command' (parser_node)")
         self._actions.clear()
         self._graphs.clear()
+        self._reports.clear()
         for maps in self._attention.values():
             maps.clear()
         sent_ns = time.time_ns()
@@ -244,59 +263,59 @@ class GscanCommander(Node):
         sent_ns = self.send_command(command, timeout)
         started = time.monotonic()
         deadline = started + timeout
-        watch = _EpisodeWatch(command)
-        while True:
-            decided = watch.update(self._graph(sent_ns), self.status_log[status_from:], self._episode_actions(sent_ns))
-            if decided is not None:
-                break
-            if time.monotonic() > deadline:
-                decided = (Outcome.TIMEOUT, "")
-                break
-            self._executor.spin_once(timeout_sec=POLL_S)
-        outcome, reason = decided
-        if watch.eos_seen:  # the policy's closing line says whether max_steps forced the <eos>
-            # The graph may still be on its way too: topics are not ordered with each other,
-            # so a busy machine can deliver the <eos> action before the command graph.
-            grace = min(deadline, time.monotonic() + EOS_GRACE_S)
-            while time.monotonic() < grace:
-                watch.see(self._graph(sent_ns))
-                if watch.closed(self.status_log[status_from:]):
-                    break
+        episode: tuple[int, es.EpisodeStatus] | None = None  # (source ns, report) of its start
+        end: tuple[int, es.EpisodeStatus] | None = None
+        while end is None and time.monotonic() < deadline:
+            episode, end = _episode_reports(self._reports, sent_ns, command, self._graph_of(command, sent_ns))
+            if end is None:
                 self._executor.spin_once(timeout_sec=POLL_S)
-            outcome = Outcome.MAX_STEPS if watch.forced(self.status_log[status_from:]) else Outcome.SUCCEEDED
-        actions = self._episode_actions(sent_ns)
+        if end is not None and episode is not None:  # its last actions and graph may still be on their way
+            grace = min(deadline, time.monotonic() + LATE_GRACE_S)
+            while time.monotonic() < grace and not self._settled(command, sent_ns, episode[0], end):
+                self._executor.spin_once(timeout_sec=POLL_S)
+        start_ns = episode[0] if episode is not None else sent_ns
+        end_ns = end[0] if end is not None else time.time_ns()
+        actions = [item for item in self._actions if start_ns < item[0] <= end_ns]
+        graph = self._graph_of(command, sent_ns)
         return EpisodeResult(
             command=command,
-            outcome=outcome,
+            outcome=OUTCOMES[end[1].outcome] if end is not None else Outcome.TIMEOUT,
             actions=[a for _, _, a in actions],
-            graph=self._graph(sent_ns),
+            graph=graph[1] if graph is not None else None,
             elapsed=time.monotonic() - started,
             status=list(self.status_log[status_from:]),
-            reason=reason,
+            reason=end[1].text if end is not None else "",
+            episode_id=(episode or end)[1].episode_id if (episode or end) else "",
             sent_ns=sent_ns,
             action_times_ns=[received for _, received, _ in actions],
             attention={word: [m for t, m in maps if t >= sent_ns] for word, maps in self._attention.items()},
         )
 
-    def _episode_actions(self, sent_ns: int) -> list[tuple[int, int, Action]]:
-        """Actions sent after the command, up to and including the first <eos>."""
-        out = []
-        for item in self._actions:
-            if item[0] >= sent_ns:
-                out.append(item)
-                if item[2] is Action.EOS:
-                    break
-        return out
+    def _settled(self, command: str, sent_ns: int, start_ns: int, end: tuple[int, es.EpisodeStatus]) -> bool:
+        """Everything about the ended episode has arrived: the command's graph and, when it
+        ended with `<eos>`, that action (the policy's actions arrive in order)."""
+        if self._graph_of(command, sent_ns) is None:
+            return False
+        if end[1].outcome not in (es.COMPLETE, es.CUT):
+            return True
+        return any(start_ns < t <= end[0] and a is Action.EOS for t, _, a in self._actions)
 
-    def _graph(self, sent_ns: int) -> CommandGraph | None:
-        """The first valid command graph published after the command was sent."""
+    def _graph_of(self, command: str, sent_ns: int) -> tuple[int, CommandGraph] | None:
+        """(source ns, graph) the parser made of `command`: the first valid graph published
+        after it was sent that was typed as `command` (another client's command may be parsed
+        in between), else the first valid one."""
+        first = None
         for t_ns, msg in self._graphs:
-            if t_ns >= sent_ns:
-                try:
-                    return msg_to_graph(msg)
-                except GscanError:
-                    continue
-        return None
+            if t_ns < sent_ns:
+                continue
+            try:
+                graph = msg_to_graph(msg)
+            except GscanError:
+                continue
+            if (graph.typed or graph.command) == command:
+                return t_ns, graph
+            first = first or (t_ns, graph)
+        return first
 
     # -- lifecycle ---------------------------------------------------------------------
     def shutdown(self) -> None:
@@ -317,49 +336,28 @@ class GscanCommander(Node):
         self.shutdown()
 
 
-class _EpisodeWatch:
-    """Reads one command's fate from the status lines of the parser and the policy (docs/ros.md)."""
-
-    def __init__(self, command: str) -> None:
-        # parser_node: rejected command '<quoted text>': <reason>  (quoted and spaced as StatusReporter does)
-        self._rejected = "parser_node: " + StatusReporter._line(f"rejected command {quote(command)}")
-        self._canonical: str | None = None
-        self.eos_seen = False
-
-    def update(self, graph: CommandGraph | None, lines: list[str], actions: list) -> tuple[Outcome, str] | None:
-        """The outcome once it is known (a provisional SUCCEEDED at <eos>), else None."""
-        self.see(graph)
-        following = False  # the policy started this episode (lines before it are about an older one)
-        for line in lines:
-            if line.startswith(self._rejected):
-                return Outcome.REJECTED, line
-            if self._canonical is None:
-                continue
-            if line.startswith(f"policy_node: following {self._canonical}"):
-                following = True
-            elif not following:
-                if line.startswith("policy_node: rejected command graph"):
-                    return Outcome.REJECTED, line
-            elif line.startswith(f"policy_node: aborted {self._canonical}"):
-                return Outcome.ABORTED, line
-            elif line.startswith(f"policy_node: preempted {self._canonical}"):
-                return Outcome.PREEMPTED, line
-        if actions and actions[-1][2] is Action.EOS:
-            self.eos_seen = True
-            return Outcome.SUCCEEDED, ""
-        return None
-
-    def see(self, graph: CommandGraph | None) -> None:
-        """Note the parser's graph of the command (its canonical text names the episode)."""
-        if graph is not None:
-            self._canonical = repr(graph.command)
-
-    def closed(self, lines: list[str]) -> bool:
-        """The parser's graph and the policy's `done with '<command>'` line have both arrived."""
-        return self._canonical is not None and any(
-            line.startswith(f"policy_node: done with {self._canonical}") for line in lines)
-
-    def forced(self, lines: list[str]) -> bool:
-        """The policy reported stopping the command at max_steps."""
-        marker = f"policy_node: {self._canonical} stopped at max_steps=" if self._canonical else None
-        return any(line.startswith(marker) if marker else " stopped at max_steps=" in line for line in lines)
+def _episode_reports(reports: list[tuple[int, es.EpisodeStatus]], sent_ns: int, command: str,
+                     graph: tuple[int, CommandGraph] | None):
+    """(start, end) reports of the episode `command`, sent at `sent_ns`, began; each may still
+    be None. The parser's refusal names the command; otherwise the episode is the first one
+    started after its graph was published whose ACTIVE text is the graph's command, or the
+    policy's refusal of that graph (a REJECTED report of an episode that never started)."""
+    refused = f"rejected command {quote(command)}"
+    started: set[str] = set()
+    episode = None
+    for t_ns, report in reports:
+        if t_ns < sent_ns:
+            continue
+        if report.outcome == es.REJECTED and report.episode_id not in started and report.text.startswith(refused):
+            return None, (t_ns, report)
+        if episode is None:
+            if graph is None or t_ns < graph[0]:
+                started.add(report.episode_id)
+            elif report.outcome == es.ACTIVE and report.text == graph[1].command:
+                episode = (t_ns, report)
+            elif report.outcome == es.REJECTED and report.episode_id not in started:
+                return None, (t_ns, report)
+            started.add(report.episode_id)
+        elif report.episode_id == episode[1].episode_id and report.ended:
+            return episode, (t_ns, report)
+    return episode, None

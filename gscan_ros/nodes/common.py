@@ -31,10 +31,11 @@ COMMAND = interface.COMMAND.name
 COMMAND_GRAPH = interface.COMMAND_GRAPH.name
 STATUS = interface.STATUS.name
 OBSERVATION = interface.OBSERVATION.name
-SITUATION = interface.SITUATION.name  # gSCAN situation JSON of the current world state (for recorders)
+SITUATION = interface.SITUATION.name  # gSCAN situation JSON of the current world state
 WORLD_RESET = interface.WORLD_RESET.name  # std_msgs/Header stamped with the time the world was (re)loaded
 WORLD_IMAGE = interface.WORLD_IMAGE.name
 ACTION = interface.ACTION.name
+EPISODE_STATUS = interface.EPISODE_STATUS.name  # actionlib_msgs/GoalStatus: an episode started / how it ended
 ATTENTION_PREFIX = interface.ATTENTION.name
 SIZE_ORDERING = interface.SIZE_ORDERING.name  # (-att_small + att_big) / 2, commands with a size word
 RESET_WORLD = interface.RESET_WORLD.name
@@ -62,7 +63,6 @@ def qos_profile(spec: Endpoint | Qos, *, depth: int | None = None) -> QoSProfile
 
 # Named profiles (tests and tools subscribe with these).
 LATCHED_QOS = qos_profile(interface.LATCHED)
-LATCHED_STATE_QOS = qos_profile(interface.LATCHED_STATE)
 # A reader of latched topics that must see every state, not just the newest (recorders,
 # test probes): it gets the stored sample on joining and queues later ones while busy.
 LATCHED_LOG_QOS = qos_profile(interface.LATCHED, depth=interface.LOG_DEPTH)

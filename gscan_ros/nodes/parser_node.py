@@ -1,8 +1,9 @@
 """parser_node: English command on `command` -> CommandGraph JSON on `command_graph` (latched).
 
 A command the parser cannot handle (unknown word, empty, not in the gSCAN grammar)
-is reported on `status` and publishes nothing, so the policy keeps its current
-episode. Commands longer than `max_command_chars` are rejected before parsing, so
+is reported on `status` and as a REJECTED episode on `episode_status` (so a client
+learns the fate of every command from one typed topic) and publishes no graph, so the
+policy keeps its current episode. Commands longer than `max_command_chars` are rejected before parsing, so
 megabyte strings cost no parser time. The subscription takes the serialized message,
 so invalid UTF-8 and embedded NULs reach the language layer's `command_text` check
 (the CLI's) instead of being replaced or cut off by rclpy.
@@ -15,10 +16,14 @@ the typed text (`typed`) for the episode recorder.
 """
 from __future__ import annotations
 
+import time
+
+from actionlib_msgs.msg import GoalStatus
 from rclpy.node import Node
 from std_msgs.msg import String
 
 from gscan_ros import interface
+from gscan_ros.data.episode_status import REJECTED, EpisodeStatus
 from gscan_ros.errors import CommandError, GscanError
 from gscan_ros.language.canonical import canonicalize
 from gscan_ros.language.parser import Parser
@@ -30,6 +35,7 @@ from gscan_ros.model.policy import default_checkpoint_path
 from gscan_ros.nodes.common import (
     COMMAND,
     COMMAND_GRAPH,
+    EPISODE_STATUS,
     StatusReporter,
     describe,
     guarded,
@@ -38,7 +44,7 @@ from gscan_ros.nodes.common import (
     run,
     validated,
 )
-from msg_adapters import cdr_to_string_bytes, graph_to_msg
+from msg_adapters import cdr_to_string_bytes, episode_status_to_msg, graph_to_msg
 
 
 class ParserNode(Node):
@@ -63,6 +69,8 @@ class ParserNode(Node):
         except GscanError as exc:
             self.get_logger().warning(f"WordNet synonyms unavailable, only gSCAN words are understood: {exc}")
         self._graph_pub = self.create_publisher(String, COMMAND_GRAPH, qos_profile(interface.COMMAND_GRAPH))
+        self._episode_pub = self.create_publisher(GoalStatus, EPISODE_STATUS, qos_profile(interface.EPISODE_STATUS))
+        self._rejected = 0  # numbers the ids of rejected commands
         self.create_subscription(String, COMMAND, self.on_command, qos_profile(interface.COMMAND), raw=True)
         self.add_on_set_parameters_callback(validated(self._check_parameters))
         self.add_post_set_parameters_callback(self._apply_parameters)
@@ -103,7 +111,11 @@ class ParserNode(Node):
             canonical = canonicalize(text)
             graph = self._parser.parse(text)
         except GscanError as exc:
-            self.status.reject(f"rejected command {quote(_shown(data))}: {exc}")
+            line = f"rejected command {quote(_shown(data))}: {exc}"
+            self.status.reject(line)
+            self._rejected += 1
+            self._episode_pub.publish(episode_status_to_msg(EpisodeStatus(
+                f"{self.get_fully_qualified_name()}/{self._rejected}", time.time_ns(), REJECTED, line)))
             return
         self._graph_pub.publish(graph_to_msg(graph))
         if canonical.mappings:  # logged too

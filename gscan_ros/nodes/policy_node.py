@@ -2,7 +2,11 @@
 
 Episode protocol (docs/ros.md "Lock-step"):
 - a new `command_graph` resets the model's module states and starts an episode; one
-  still running is preempted (reported on `status`). A graph published before this
+  still running is preempted. Every episode is reported on `episode_status`
+  (actionlib_msgs/GoalStatus): ACTIVE before its first action, then how it ended
+  (SUCCEEDED: the model's `<eos>`; ABORTED: cut at `max_steps`; PREEMPTED: a new command
+  or a world reset; REJECTED: a graph it cannot follow), after its last action, so the
+  actions published between the two are exactly the episode's (docs/ros.md "Episodes"). A graph published before this
   node started (the latched copy a restarted policy receives) is not acted on: a
   command is an instruction for the moment it is given;
 - the policy acts on the newest observation, publishes action t, and then acts only
@@ -10,7 +14,7 @@ Episode protocol (docs/ros.md "Lock-step"):
   DDS source timestamp with the time action t was sent, so a reply that was already
   in flight, or a latched copy, is never mistaken for the result of action t;
 - the episode ends with `<eos>`, either the model's or forced after `max_steps`, or
-  is aborted by a world reset (`world_reset`): the policy sends nothing more for it,
+  is preempted by a world reset (`world_reset`): the policy sends nothing more for it,
   and ignores observations, graphs and replies from before the reset.
 Each step also publishes every word module's attention map on `attention/<word>` and, for
 a command with a size word, the size-ordering map on `attention/size_ordering`.
@@ -20,11 +24,13 @@ from __future__ import annotations
 import time
 
 import numpy as np
+from actionlib_msgs.msg import GoalStatus
 from rclpy.node import Node
 from sensor_msgs.msg import Image
 from std_msgs.msg import Header, String, UInt8MultiArray
 
 from gscan_ros import interface
+from gscan_ros.data import episode_status as es
 from gscan_ros.errors import GscanError
 from gscan_ros.language.graph import CommandGraph
 from gscan_ros.model.policy import MAX_STEPS
@@ -32,6 +38,7 @@ from gscan_ros.model.runtime import configure_torch
 from gscan_ros.nodes.common import (
     ACTION,
     COMMAND_GRAPH,
+    EPISODE_STATUS,
     OBSERVATION,
     SIZE_ORDERING,
     WORLD_RESET,
@@ -45,7 +52,14 @@ from gscan_ros.nodes.common import (
 )
 from gscan_ros.training.explain import size_ordering
 from gscan_ros.world.types import Action
-from msg_adapters import action_to_msg, attention_to_msg, msg_to_graph, msg_to_observation, msg_to_reset
+from msg_adapters import (
+    action_to_msg,
+    attention_to_msg,
+    episode_status_to_msg,
+    msg_to_graph,
+    msg_to_observation,
+    msg_to_reset,
+)
 
 MODEL_PARAMETERS = ("checkpoint", "device")
 
@@ -79,6 +93,9 @@ class PolicyNode(Node):
         self._candidate = None  # loaded while a checkpoint/device change is checked
         self._next_policy = None  # the accepted change's model, taken at the next command
         self._action_pub = self.create_publisher(String, ACTION, qos_profile(interface.ACTION))
+        self._episode_pub = self.create_publisher(GoalStatus, EPISODE_STATUS, qos_profile(interface.EPISODE_STATUS))
+        self._episodes = 0  # episodes started or rejected: numbers their ids
+        self._episode: es.EpisodeStatus | None = None  # the running episode's ACTIVE report
         self._attention_pubs: dict[str, object] = {}
         self._size_ordering_pub = None
         self._observation: np.ndarray | None = None
@@ -146,8 +163,7 @@ class PolicyNode(Node):
         if self._observation_ns < reset_ns:
             self._observation = None  # the old world's state
         if self._graph is not None and self._graph_ns < reset_ns:
-            self.status.info(f"aborted {self._graph.command!r} after {self._steps} actions: the world was reset")
-            self._graph = None
+            self._end(es.PREEMPTED, f"the world was reset after {self._steps} actions")
 
     @guarded
     def on_graph(self, msg: String, info: dict) -> None:
@@ -158,18 +174,19 @@ class PolicyNode(Node):
             self.status.reject("ignored a command graph published before the world was reset")
             return
         if self._graph is not None:
-            self.status.info(f"preempted {self._graph.command!r} after {self._steps} actions")
-            self._graph = None
+            self._end(es.PREEMPTED, f"a new command came after {self._steps} actions")
         self._take_next_policy()
         try:
             graph = msg_to_graph(msg)
+            self._check_grid(self._observation)
             self._policy.reset(graph)
         except GscanError as exc:
-            self.status.reject(f"rejected command graph: {exc}")
+            self._report(self._new_episode(es.REJECTED, f"rejected command graph: {exc}"))
             return
         self._graph, self._graph_ns, self._steps = graph, info["source_timestamp"], 0
         self._step_cap = self.get_parameter("max_steps").value
-        self.status.info(f"following {graph.command!r}")
+        self._episode = self._new_episode(es.ACTIVE, graph.command)
+        self._report(self._episode)
         if self._observation is not None and self._observation_ns > self._sent_ns:
             self._act()
 
@@ -177,19 +194,44 @@ class PolicyNode(Node):
     def on_observation(self, msg: UInt8MultiArray, info: dict) -> None:
         if info["source_timestamp"] < self._reset_ns:
             return  # a state of the world before the reset, delivered late
-        observation = msg_to_observation(msg)
-        if observation.shape != self._policy.observation_shape:
-            g, want = observation.shape[0], self._policy.grid_size
-            self.status.reject(f"observation is a {g}x{g} grid; the checkpoint was trained on {want}x{want}")
+        # Kept even when it does not fit the checkpoint, so the next command is refused
+        # with the reason instead of waiting for a state it can use.
+        self._observation, self._observation_ns = msg_to_observation(msg), info["source_timestamp"]
+        try:
+            self._check_grid(self._observation)
+        except GscanError as exc:
+            self.status.reject(str(exc))
+            if self._graph is not None:
+                self._end(es.REJECTED, str(exc))
             return
-        self._observation, self._observation_ns = observation, info["source_timestamp"]
         if self._graph is not None and self._observation_ns > self._sent_ns:
             self._act()
 
+    def _check_grid(self, observation: np.ndarray | None) -> None:
+        """The policy's checkpoint must fit the world's grid (a world of another size is reported, not followed)."""
+        if observation is not None and observation.shape != self._policy.observation_shape:
+            g, want = observation.shape[0], self._policy.grid_size
+            raise GscanError(f"observation is a {g}x{g} grid; the checkpoint was trained on {want}x{want}")
+
+    def _new_episode(self, outcome: str, text: str) -> es.EpisodeStatus:
+        self._episodes += 1
+        return es.EpisodeStatus(f"{self.get_fully_qualified_name()}/{self._episodes}", time.time_ns(), outcome, text)
+
+    def _report(self, status: es.EpisodeStatus) -> None:
+        """On `episode_status` for programs, on `status` for people."""
+        self._episode_pub.publish(episode_status_to_msg(status))
+        line = f"episode {status.episode_id} {status.outcome}: {status.text}"
+        (self.status.reject if status.outcome == es.REJECTED else self.status.info)(line)
+
+    def _end(self, outcome: str, why: str) -> None:
+        """The running episode ended (after its last action was published)."""
+        episode, self._episode, self._graph = self._episode, None, None
+        self._report(es.EpisodeStatus(episode.episode_id, episode.start_ns, outcome, f"{episode.text!r}: {why}"))
+
     def _act(self) -> None:
-        if self._steps >= self._step_cap:
+        cut = self._steps >= self._step_cap
+        if cut:
             action, attention, ordering = Action.EOS, {}, None
-            self.status.info(f"{self._graph.command!r} stopped at max_steps={self._step_cap}")
         else:
             out = self._policy.step(self._observation)
             action, attention, ordering = out.action, out.attention, size_ordering(out.attention, out.antonyms)
@@ -200,8 +242,10 @@ class PolicyNode(Node):
         if ordering is not None:
             self._publish_size_ordering(ordering)
         if action is Action.EOS:
-            self.status.info(f"done with {self._graph.command!r} after {self._steps} actions")
-            self._graph = None
+            if cut:
+                self._end(es.CUT, f"stopped at max_steps={self._step_cap}")
+            else:
+                self._end(es.COMPLETE, f"done after {self._steps} actions")
         else:
             self._steps += 1
 

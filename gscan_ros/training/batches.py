@@ -17,16 +17,18 @@ import torch
 from tqdm import tqdm
 
 from gscan_ros.data.episode import Episode
+from gscan_ros.errors import quoted
 from gscan_ros.language.graph import CommandGraph
 from gscan_ros.model.layout import Layout
 from gscan_ros.model.modules import ModuleTable
 from gscan_ros.model.teacher_forcing import TeacherBatch
-from gscan_ros.world.types import GRID_SIZE, NUM_CHANNELS, Action
+from gscan_ros.world.types import AGENT_CHANNEL, GRID_SIZE, NUM_CHANNELS, Action
 
 if TYPE_CHECKING:  # the bag layer imports rclpy's serializer; training must not
     from gscan_ros.data.bag_cache import EpisodeCache
 
 BATCHING = ("mixed", "per_command")
+_INTERACTIONS = (int(Action.PUSH), int(Action.PULL))
 
 
 class EpisodeStore:
@@ -110,6 +112,23 @@ class EpisodeStore:
             out[row, self.bits[self.state_ptr[state] : self.state_ptr[state + 1]]] = 1
         return out.reshape(len(ids), g, g, NUM_CHANNELS)
 
+    def target_cells(self, ids: Sequence[int]) -> np.ndarray:
+        """int64[B]: the cell (row * G + column) of the target object of episodes `ids`.
+
+        A gSCAN demonstration walks onto the target before it pushes or pulls (agent and
+        object share the cell, quirk Q11), so the target's cell is the agent's in the state
+        before the first push/pull, or in the last state of an episode without one. Read
+        from the cached states, so bags need no Situation parsed (tests: equal to
+        `Situation.target_object.position` on generated data)."""
+        out = np.empty(len(ids), dtype=np.int64)
+        for row, i in enumerate(ids):
+            start, stop = self.ep_ptr[i], self.ep_ptr[i + 1]
+            interacts = np.flatnonzero(np.isin(self.actions[start:stop], _INTERACTIONS))
+            state = start + (interacts[0] if len(interacts) else stop - 1 - start)
+            bits = self.bits[self.state_ptr[state] : self.state_ptr[state + 1]].astype(np.int64)
+            out[row] = bits[bits % NUM_CHANNELS == AGENT_CHANNEL][0] // NUM_CHANNELS
+        return out
+
     def __len__(self) -> int:
         return len(self.commands)
 
@@ -160,7 +179,7 @@ def word_repeats(commands: Sequence[str], word: str, factor: int) -> np.ndarray 
         return None
     has = np.fromiter((has_word(command, word) for command in commands), dtype=bool, count=len(commands))
     if not has.any():
-        raise ValueError(f"no train command has {word!r} to oversample")
+        raise ValueError(f"no train command has {quoted(word)} to oversample")
     return np.where(has, factor, 1)
 
 

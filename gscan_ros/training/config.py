@@ -1,7 +1,7 @@
 """TrainConfig: every training knob, from a YAML file plus `--set key=value` overrides.
 
-Model hyper-parameters live under `model:` (fields of `ModelConfig`, or of
-`Seq2SeqConfig` when `model_kind: seq2seq`); `--set model.rnn_dim=40` reaches them.
+Model hyper-parameters live under `model:` (fields of the `model_kind`'s config: `ModelConfig`,
+`Seq2SeqConfig`, `AuxLossConfig` or `LCGNConfig`); `--set model.rnn_dim=40` reaches them.
 Unknown keys are an error naming the key, so a typo never silently trains the default.
 """
 from __future__ import annotations
@@ -10,30 +10,16 @@ import math
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
-import yaml
-
-from gscan_ros.errors import GscanError
+from gscan_ros.errors import GscanError, quoted
 from gscan_ros.language.lexicon import LEXICONS
 from gscan_ros.language.registry import DEFAULT_PARSER
-from gscan_ros.model.checkpoint import KINDS
+from gscan_ros.model.checkpoint import KINDS, model_classes
 from gscan_ros.training.batches import BATCHING
+from gscan_ros.user_files import parse_yaml, read_yaml
 
 
 class ConfigError(GscanError):
     """A training config file or override that is malformed or names an unknown key."""
-
-
-def read_yaml(path: str | Path, what: str, error: type[GscanError]):
-    """The YAML document in `path`; `error` with one line naming `what` when the file
-    cannot be read, is not UTF-8 or is not YAML."""
-    try:
-        return yaml.safe_load(Path(path).read_text())
-    except OSError as exc:
-        raise error(f"cannot read {what}: {exc.strerror}") from None
-    except UnicodeDecodeError as exc:
-        raise error(f"{what} is not UTF-8 text (byte {exc.start})") from None
-    except yaml.YAMLError as exc:
-        raise error(f"{what} is not valid YAML: {' '.join(str(exc).split())}") from None
 
 
 @dataclass
@@ -41,9 +27,10 @@ class TrainConfig:
     """Training run settings (defaults: the original's, ylkuo/compositional-gscan `configs/`, unless noted)."""
 
     model_kind: str = "compositional"
-    """'compositional' (Kuo et al.) or 'seq2seq' (the gSCAN baseline, LauraRuis/multimodal_seq2seq_gSCAN)."""
+    """'compositional' (Kuo et al.), 'seq2seq' (the gSCAN baseline, LauraRuis/multimodal_seq2seq_gSCAN),
+    'auxloss' (Heinze-Deml & Bouchacourt 2020) or 'lcgn' (Gao et al. 2020); docs/model.md."""
     model: dict = field(default_factory=dict)
-    """Overrides of the model config's fields (see ModelConfig / Seq2SeqConfig docstrings)."""
+    """Overrides of the model config's fields (see the model_kind's config class docstrings)."""
     parser: str = DEFAULT_PARSER
     """Command parser building the network: one of `language.BUILTIN_PARSERS` or a registered one."""
     lexicon: str = "wordnet"
@@ -105,6 +92,9 @@ class TrainConfig:
     max_train_target_length: int = 0
     """Train only on episodes of at most this many actions (the original's `max_seq_length`;
     the paper's Table 2 trains split I at 15, 14 and 13); 0 = all."""
+    include_incomplete: bool = False
+    """Also train on recorded episodes that did not end complete (cut at max_steps, preempted,
+    rejected): off, since they are no demonstrations (docs/bags.md "Outcomes")."""
     validate_every: int = 500
     """Updates between validations (closed-loop exact match on the dev subset)."""
     max_dev_examples: int = 500
@@ -131,43 +121,44 @@ class TrainConfig:
         }
         for key, allowed in checks.items():
             if getattr(self, key) not in allowed:
-                raise ConfigError(f"{key} must be one of {list(allowed)}, got {getattr(self, key)!r}")
+                raise ConfigError(f"{key} must be one of {list(allowed)}, got {quoted(getattr(self, key))}")
         for key in ("batch_size", "max_updates", "validate_every", "checkpoint_every", "log_every", "eval_batch_size"):
             if int(getattr(self, key)) <= 0:
-                raise ConfigError(f"{key} must be positive, got {getattr(self, key)!r}")
+                raise ConfigError(f"{key} must be positive, got {quoted(getattr(self, key))}")
         for key in ("screen_seeds", "screen_updates", "warmup_updates", "decay_updates", "max_train_examples",
                     "max_train_target_length", "max_dev_examples", "threads"):
             if int(getattr(self, key)) < 0:
-                raise ConfigError(f"{key} must be >= 0, got {getattr(self, key)!r}")
+                raise ConfigError(f"{key} must be >= 0, got {quoted(getattr(self, key))}")
         for key in ("lr", "min_lr_ratio", "grad_clip", "target_dev_exact_match", "max_minutes"):
             value = float(getattr(self, key))
             if not math.isfinite(value) or value < 0:
-                raise ConfigError(f"{key} must be a finite number >= 0, got {getattr(self, key)!r}")
+                raise ConfigError(f"{key} must be a finite number >= 0, got {quoted(getattr(self, key))}")
         if self.lr <= 0:
-            raise ConfigError(f"lr must be positive, got {self.lr!r}")
+            raise ConfigError(f"lr must be positive, got {quoted(self.lr)}")
         if self.min_lr_ratio > 1:
-            raise ConfigError(f"min_lr_ratio must be in [0, 1], got {self.min_lr_ratio!r}")
+            raise ConfigError(f"min_lr_ratio must be in [0, 1], got {quoted(self.min_lr_ratio)}")
         if self.target_dev_exact_match > 100:
-            raise ConfigError(f"target_dev_exact_match is a percentage (0-100), got {self.target_dev_exact_match!r}")
+            raise ConfigError("target_dev_exact_match is a percentage (0-100), "
+                              f"got {quoted(self.target_dev_exact_match)}")
         if isinstance(self.oversample_factor, bool) or not isinstance(self.oversample_factor, int) \
                 or self.oversample_factor < 1:
-            raise ConfigError(f"oversample_factor must be an integer >= 1, got {self.oversample_factor!r}")
+            raise ConfigError(f"oversample_factor must be an integer >= 1, got {quoted(self.oversample_factor)}")
         if not isinstance(self.oversample_word, str) or (self.oversample_factor > 1) != bool(self.oversample_word):
             raise ConfigError("oversample_word and oversample_factor > 1 go together "
-                              f"(got {self.oversample_word!r} and {self.oversample_factor!r})")
+                              f"(got {quoted(self.oversample_word)} and {quoted(self.oversample_factor)})")
         if int(self.late_batch_size) < 0 or int(self.late_batch_from) < 0:
-            raise ConfigError(f"late_batch_size and late_batch_from must be >= 0, got {self.late_batch_size!r} "
-                              f"and {self.late_batch_from!r}")
+            raise ConfigError("late_batch_size and late_batch_from must be >= 0, "
+                              f"got {quoted(self.late_batch_size)} and {quoted(self.late_batch_from)}")
         if bool(self.late_batch_size) != bool(self.late_batch_from):
             raise ConfigError("late_batch_size and late_batch_from go together "
-                              f"(got {self.late_batch_size!r} and {self.late_batch_from!r})")
+                              f"(got {quoted(self.late_batch_size)} and {quoted(self.late_batch_from)})")
         if self.late_batch_from and self.screen_seeds > 1 and self.late_batch_from <= self.screen_updates:
             raise ConfigError(f"late_batch_from ({self.late_batch_from}) must come after the seed screen's "
                               f"{self.screen_updates} updates")
         if int(self.snapshot_every) < 0:
-            raise ConfigError(f"snapshot_every must be >= 0, got {self.snapshot_every!r}")
+            raise ConfigError(f"snapshot_every must be >= 0, got {quoted(self.snapshot_every)}")
         if not isinstance(self.model, dict):
-            raise ConfigError(f"model must be a mapping of model settings, got {self.model!r}")
+            raise ConfigError(f"model must be a mapping of model settings, got {quoted(self.model)}")
         model_config = self.model_config()  # validates model keys
         if self.screen_seeds > 1:
             if not getattr(model_config, "uses_attention", False):
@@ -175,7 +166,7 @@ class TrainConfig:
                                   f"(model_kind compositional, message attention); set screen_seeds: 0 for "
                                   f"{self.model_kind} / {self.model.get('message', 'attention')}")
             if not 0 < self.screen_updates < self.max_updates:
-                raise ConfigError(f"screen_updates must be in (0, max_updates), got {self.screen_updates!r}")
+                raise ConfigError(f"screen_updates must be in (0, max_updates), got {quoted(self.screen_updates)}")
 
     def batch_size_at(self, step: int) -> int:
         """Episodes in update `step` (0-based)."""
@@ -194,15 +185,12 @@ class TrainConfig:
         return self.min_lr_ratio + (1.0 - self.min_lr_ratio) * shape
 
     def model_config(self):
-        """The ModelConfig / Seq2SeqConfig these settings describe (ConfigError on bad keys)."""
-        if self.model_kind == "compositional":
-            from gscan_ros.model.compositional import ModelConfig as cls
-        else:
-            from gscan_ros.model.seq2seq import Seq2SeqConfig as cls
+        """The config of the `model_kind` these settings describe (ConfigError on bad keys)."""
+        _, cls = model_classes(self.model_kind)
         known = {f.name for f in fields(cls)}
         unknown = sorted(set(self.model) - known)
         if unknown:
-            raise ConfigError(f"unknown model setting(s) {unknown}; known: {sorted(known)}")
+            raise ConfigError(f"unknown model setting(s) {quoted(unknown)}; known: {sorted(known)}")
         try:
             return cls(**self.model)
         except (TypeError, ValueError) as exc:
@@ -218,17 +206,22 @@ class TrainConfig:
         known = {f.name for f in fields(cls)}
         unknown = sorted(set(d) - known)
         if unknown:
-            raise ConfigError(f"unknown config key(s) {unknown}; known: {sorted(known)}")
+            raise ConfigError(f"unknown config key(s) {quoted(unknown)}; known: {sorted(known)}")
         types = {f.name: f.type for f in fields(cls)}
         values = {}
         for key, value in d.items():
-            kind = {"int": int, "float": float, "str": str, "dict": dict}[types[key]]
+            kind = {"int": int, "float": float, "str": str, "dict": dict, "bool": bool}[types[key]]
+            if kind is bool:
+                if not isinstance(value, bool):
+                    raise ConfigError(f"config key {key!r} expects true or false, got {quoted(value)}")
+                values[key] = value
+                continue
             if kind is int and (isinstance(value, bool) or (isinstance(value, float) and not value.is_integer())):
-                raise ConfigError(f"config key {key!r} expects an integer, got {value!r}")  # int() would truncate
+                raise ConfigError(f"config key {key!r} expects an integer, got {quoted(value)}")  # int() would truncate
             try:
                 values[key] = kind(value) if kind is not dict else dict(value or {})
             except (TypeError, ValueError):
-                raise ConfigError(f"config key {key!r} expects {types[key]}, got {value!r}") from None
+                raise ConfigError(f"config key {key!r} expects {types[key]}, got {quoted(value)}") from None
         return cls(**values)
 
     @classmethod
@@ -240,16 +233,13 @@ class TrainConfig:
             if not isinstance(data, dict):
                 raise ConfigError(f"config {str(path)!r} must be a mapping")
         if not isinstance(data.get("model") or {}, dict):
-            raise ConfigError(f"model must be a mapping of model settings, got {data['model']!r}")
+            raise ConfigError(f"model must be a mapping of model settings, got {quoted(data['model'])}")
         data = {**data, "model": dict(data.get("model") or {})}
         for item in overrides:
             key, sep, raw = item.partition("=")
             if not sep or not key:
-                raise ConfigError(f"override {item!r} must look like key=value")
-            try:
-                value = yaml.safe_load(raw)
-            except yaml.YAMLError:
-                raise ConfigError(f"override {item!r}: {raw!r} is not a YAML value") from None
+                raise ConfigError(f"override {quoted(item)} must look like key=value")
+            value = parse_yaml(raw, f"override {quoted(item)}", ConfigError)
             if key.startswith("model."):
                 data["model"][key[len("model."):]] = value
             else:

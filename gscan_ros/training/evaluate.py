@@ -235,7 +235,7 @@ class TeacherForced:
 @torch.no_grad()
 def teacher_forced(model: torch.nn.Module, store, ids: Sequence[int] | None = None,
                    batch_size: int = 256) -> TeacherForced:
-    """`TeacherForced` of `model` (compositional or seq2seq, in eval mode) on episodes
+    """`TeacherForced` of `model` (any model kind, in eval mode) on episodes
     `ids` of an `EpisodeStore` (default: all of them)."""
     from gscan_ros.training.step import teacher_batch
 
@@ -264,8 +264,9 @@ def teacher_forced(model: torch.nn.Module, store, ids: Sequence[int] | None = No
 
 def _gold_steps(batch, out) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """(gold action, batch row, logits, NLL) of every real step of a teacher-forcing batch:
-    the compositional batch packs steps time-major with padding (`valid`), the seq2seq
-    output holds the valid steps of its [rows, T] targets in row-major order."""
+    the compositional batch packs steps time-major with padding (`valid`); the output of
+    the models with the seq2seq decoder (seq2seq, AuxLoss, LCGN) holds the valid steps of
+    its [rows, T] targets in row-major order."""
     if hasattr(batch, "valid"):
         valid = batch.valid.to(out.logits.device)
         return (batch.targets.to(valid.device)[valid], batch.rows.to(valid.device)[valid], out.logits[valid],

@@ -1,11 +1,15 @@
 """Evaluation outputs: results JSON, a Markdown table, and a gSCAN-format predictions file."""
 from __future__ import annotations
 
+import contextlib
 import json
 from pathlib import Path
 
+from gscan_ros.outputs import check_targets, claimed, replacing, write_text
 from gscan_ros.training.evaluate import EvalResult
 from gscan_ros.training.failures import FAILURE_KINDS, failure_label
+
+REPORT_FILES = ("results.json", "results.md", "predictions.json")
 
 
 def markdown_table(summary: dict, title: str = "") -> str:
@@ -51,17 +55,28 @@ def _tokens(command: str) -> list[str]:
     return list(tokenize(command))
 
 
+def claim_report_dir(held: contextlib.ExitStack, out_dir: str | Path, overwrite: bool) -> None:
+    """Before an evaluation: hold `out_dir`'s lock while `held` lasts, and refuse the
+    results of an earlier one there unless `overwrite` (a symbolic link among them always)."""
+    held.enter_context(claimed(out_dir))
+    check_targets([Path(out_dir) / name for name in REPORT_FILES], overwrite=overwrite)
+
+
 def write_reports(out_dir: str | Path, result: EvalResult, meta: dict, predictions: bool = True) -> dict:
+    """results.json, results.md and (with `predictions`) predictions.json in `out_dir`, each
+    replaced whole; an older predictions.json is removed when none is written (no stale set)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     summary = result.summary()
     doc = {**meta, "splits": summary}
-    (out / "results.json").write_text(json.dumps(doc, indent=2))
-    (out / "results.md").write_text(markdown_table(summary, meta.get("title", "")))
+    write_text(out / "results.json", json.dumps(doc, indent=2))
+    write_text(out / "results.md", markdown_table(summary, meta.get("title", "")))
     if predictions:
-        with open(out / "predictions.json", "w") as f:
+        with replacing(out / "predictions.json") as tmp, open(tmp, "w") as f:
             f.write("[\n")
             for i, rec in enumerate(prediction_records(result)):
                 f.write((",\n" if i else "") + json.dumps(rec))
             f.write("\n]\n")
+    else:
+        (out / "predictions.json").unlink(missing_ok=True)
     return doc

@@ -3,12 +3,13 @@
 A run directory holds `config.yaml` (resolved), `metrics.jsonl` (one JSON object per
 log line / validation), `learning_curve.png`, `last.pt` (with optimizer + RNG state, for
 `--resume`), `best.pt` (best dev exact match) and `model.pt` (best.pt without training
-state: the file to ship or evaluate).
+state: the file to ship or evaluate). One run writes it at a time (`gscan_ros.outputs`),
+each file replaced whole.
 """
 from __future__ import annotations
 
+import contextlib
 import itertools
-import json
 import random
 import time
 from dataclasses import dataclass
@@ -27,11 +28,13 @@ from gscan_ros.model.checkpoint import build_model, checkpoint_dict, read_checkp
 from gscan_ros.model.modules import ModuleTable
 from gscan_ros.model.policy import Policy
 from gscan_ros.model.runtime import configure_torch, mkl_shim_loaded
+from gscan_ros.outputs import claimed, refuse_links, replacing, write_text
 from gscan_ros.training import distributed
 from gscan_ros.training.batches import EpisodeStore, EpochCursor, iterate_batches, word_repeats
 from gscan_ros.training.config import ConfigError, TrainConfig
 from gscan_ros.training.evaluate import evaluate_episodes, exact_match_by_group
 from gscan_ros.training.explain import step0_readings, summarize
+from gscan_ros.training.metrics_log import append_event, read_events
 from gscan_ros.training.step import TrainingDiverged, TrainStep
 
 # Seed screening: candidate k of a run with seed s has seed s + 1000 k (distinct for runs
@@ -64,10 +67,17 @@ class RunFiles:
             return []
         return [self.root / n for n in RUN_FILES if (self.root / n).exists()] + sorted(self.root.glob("step_*.pt"))
 
+    def claim(self, held: contextlib.ExitStack, resume: bool, overwrite: bool) -> None:
+        """Take the run directory's lock for as long as `held` lasts, then `check_writable`."""
+        held.enter_context(claimed(self.root))
+        self.check_writable(resume, overwrite)
+
     def check_writable(self, resume: bool, overwrite: bool) -> None:
-        """Refuse to start a new run over an old one unless told (--resume / --overwrite)."""
+        """Refuse to start a new run over an old one unless told (--resume / --overwrite),
+        and a run file that is a symbolic link."""
         if self.root.exists() and not self.root.is_dir():
             raise GscanError(f"run directory {self.root} is a file, not a directory")
+        refuse_links(self.root / name for name in RUN_FILES)
         if resume:
             if not self.last.exists():
                 raise CheckpointError(f"--resume: no checkpoint at {self.last}")
@@ -127,7 +137,7 @@ def new_model(cfg: TrainConfig, parser, lexicon: Lexicon, store: EpisodeStore):
         return build_model("compositional", model_settings(cfg, store), {"modules": table.to_list()})
     from gscan_ros.model.seq2seq import command_vocabulary
 
-    return build_model("seq2seq", model_settings(cfg, store), {"tokens": command_vocabulary()})
+    return build_model(cfg.model_kind, model_settings(cfg, store), {"tokens": command_vocabulary()})
 
 
 def iter_split(data: str, split: str, limit: int = 0) -> Iterator:
@@ -142,18 +152,19 @@ def load_split(data: str, split: str, limit: int = 0) -> list:
     return list(iter_split(data, split, limit))
 
 
-def split_cache(data: str, split: str):
+def split_cache(data: str, split: str, include_incomplete: bool = False):
     """The decode-once `EpisodeCache` of `split` when `data` is a bag or a directory of
-    per-split bags (built on first use, loaded afterwards); None for dataset.txt data or
-    a split without a bag (`load_split` then reads it as before)."""
-    from gscan_ros.data.io import is_bag, split_bags
+    per-split bags (built on first use, loaded afterwards); None for dataset.txt data
+    (`load_split` reads it). Bag data without the split is refused (`select_bags`).
+    Recorded episodes that did not end complete only with `include_incomplete`."""
+    from gscan_ros.data.io import select_bags
 
-    bag = data if is_bag(data) else split_bags(data).get(split)
-    if bag is None:
+    bags = select_bags(data, [split])
+    if bags is None:
         return None
     from gscan_ros.data.bag_cache import load_episode_cache
 
-    return load_episode_cache(bag, [split])
+    return load_episode_cache(bags[0], [split], include_incomplete=include_incomplete)
 
 
 def load_train_store(data: str, cfg: TrainConfig, parser, progress: bool = False) -> EpisodeStore:
@@ -161,7 +172,7 @@ def load_train_store(data: str, cfg: TrainConfig, parser, progress: bool = False
     Episodes replayed through World. `max_train_target_length` drops longer episodes
     first, then `max_train_examples` keeps the first N."""
     cap = cfg.max_train_target_length
-    cache = split_cache(data, cfg.train_split)
+    cache = split_cache(data, cfg.train_split, cfg.include_incomplete)
     if cache is None:
         episodes = iter_split(data, cfg.train_split)
         if cap:
@@ -207,8 +218,8 @@ def train(cfg: TrainConfig, data: str, out_dir: str | Path, resume: bool = False
     on the number of ranks (up to float rounding); `resume` continues a run whatever
     number of ranks wrote it."""
     files = RunFiles(Path(out_dir))
-    with distributed.joined(device) as ranks:
-        ranks.from_main(lambda: files.check_writable(resume, overwrite))
+    with distributed.joined(device) as ranks, contextlib.ExitStack() as held:
+        ranks.from_main(lambda: files.claim(held, resume, overwrite))
         run = Run(cfg, data, files, ranks, progress, on_validation)
         if resume:
             run.resume()
@@ -242,7 +253,8 @@ class Run:
             self.repeats = word_repeats(self.store.commands, cfg.oversample_word, cfg.oversample_factor)
         except ValueError as exc:
             raise ConfigError(f"oversample_word: {exc} in {data!r}") from None
-        self.dev_eps = load_dev(data, cfg) if ranks.is_main else []
+        self.dev_eps: list = []
+        ranks.from_main(lambda: self.load_dev(data))  # rank 0 validates; its refusal stops every rank
         self.parser = parser
         if cfg.screen_seeds > 1 and ranks.distributed:
             raise ConfigError("screen_seeds runs on one process; screen first, then train on several ranks")
@@ -250,6 +262,12 @@ class Run:
         self.last_metrics: dict = {}
         self.screen_resume: dict | None = None  # a screen stopped between candidates (`resume`)
         self.fresh_start(cfg.seed)
+
+    def load_dev(self, data: str) -> None:
+        """The validation episodes; none is an error (a best.pt picked on nothing means nothing)."""
+        self.dev_eps = load_dev(data, self.cfg)
+        if not self.dev_eps:
+            raise DatasetFormatError(f"dataset {data!r} has no {self.cfg.dev_split!r} episodes to validate on")
 
     def fresh_start(self, seed: int) -> None:
         """A new model, optimizer and schedule from `seed`, at update 0 (the state `seed` alone gives)."""
@@ -286,9 +304,9 @@ class Run:
         self.make_step()
         if ranks.is_main:
             self.files.create(resumed)
-            self.files.config.write_text(yaml.safe_dump(self.cfg.to_dict(), sort_keys=False))
+            write_text(self.files.config, yaml.safe_dump(self.cfg.to_dict(), sort_keys=False))
             n_params = sum(p.numel() for p in self.model.parameters())
-            _append(self.files.metrics, {
+            append_event(self.files.metrics, {
                 "event": "start", "step": self.step, "seeds": self.seeds, "train_examples": len(self.store),
                 "dev_examples": len(self.dev_eps), "parameters": n_params, "resumed": resumed,
                 "world_size": ranks.world_size, "device": str(ranks.device), "mkl_shim": mkl_shim_loaded(),
@@ -387,7 +405,7 @@ class Run:
                 tqdm.write(f"seed {seed}: the maps localize the target in {reading['localization']:.1f}% of "
                            f"{len(episodes)} dev episodes (chance {reading['localization_chance']:.1f}%): "
                            f"{'kept' if passed else 'rejected'}")
-            _append(self.files.metrics, {
+            append_event(self.files.metrics, {
                 "event": "screen", "candidate": k, "seed": seed, "step": self.step,
                 "localization": reading["localization"], "chance": reading["localization_chance"],
                 "size_spearman": reading["size_spearman"], "passed": passed, "elapsed_s": round(self.elapsed(), 2)})
@@ -404,7 +422,7 @@ class Run:
         _restore_rng(kept["rng"], self.ranks.device)
         if self.progress and not passed:
             tqdm.write(f"no candidate passed; seed {self.seed} localized the target most often and trains on")
-        _append(self.files.metrics, {"event": "screen_end", "seed": self.seed, "candidates": k + 1,
+        append_event(self.files.metrics, {"event": "screen_end", "seed": self.seed, "candidates": k + 1,
                                      "screen_updates": (k + 1) * cfg.screen_updates,
                                      "elapsed_s": round(self.elapsed(), 2)})
 
@@ -416,7 +434,7 @@ class Run:
                 "elapsed_s": self.elapsed_before + now - self.started,
                 "lr": self.optimizer.param_groups[0]["lr"]}
         if self.ranks.is_main:
-            _append(self.files.metrics, line)
+            append_event(self.files.metrics, line)
         return line
 
     def reached_target(self, dev_exact_match: float) -> bool:
@@ -431,7 +449,7 @@ class Run:
         if res.exact_match > self.best or not self.files.best.exists():
             self.best = max(self.best, res.exact_match)
             self.checkpoint(self.files.best, metrics, training_state=False)
-        _append(self.files.metrics, {"event": "validation", **metrics})
+        append_event(self.files.metrics, {"event": "validation", **metrics})
         plot_learning_curve(self.files.metrics, self.files.curve)
         if self.on_validation is not None:
             self.on_validation(metrics)
@@ -461,7 +479,7 @@ class Run:
             self.checkpoint(self.files.last, self.last_metrics, training_state=True)
         save_checkpoint(self.files.model, dict(read_checkpoint(self.files.best)))
         reached = self.reached_target(self.best)
-        _append(self.files.metrics, {"event": "end", "step": self.step, "best_dev_exact_match": self.best,
+        append_event(self.files.metrics, {"event": "end", "step": self.step, "best_dev_exact_match": self.best,
                                      "reached_target": reached, "elapsed_s": self.elapsed()})
         return {"step": self.step, "best_dev_exact_match": self.best, "reached_target": reached,
                 **self.last_metrics}
@@ -519,11 +537,6 @@ def _restore_rng(state: dict, device: torch.device) -> None:
         torch.cuda.set_rng_state(state["cuda"], device)
 
 
-def _append(path: Path, record: dict) -> None:
-    with open(path, "a") as f:
-        f.write(json.dumps(record) + "\n")
-
-
 def plot_learning_curve(metrics_path: Path, png_path: Path) -> None:
     """Training loss and dev exact match against updates, from metrics.jsonl."""
     import matplotlib
@@ -532,8 +545,7 @@ def plot_learning_curve(metrics_path: Path, png_path: Path) -> None:
     import matplotlib.pyplot as plt
 
     train, val = [], []
-    for line in Path(metrics_path).read_text().splitlines():
-        rec = json.loads(line)
+    for rec in read_events(metrics_path):
         if rec.get("event") == "train":
             train.append((rec["step"], rec["loss"]))
         elif rec.get("event") == "validation":
@@ -550,5 +562,6 @@ def plot_learning_curve(metrics_path: Path, png_path: Path) -> None:
     ax2.set_ylim(0, 100)
     fig.legend(loc="upper right")
     fig.tight_layout()
-    fig.savefig(png_path, dpi=100)
+    with replacing(png_path) as tmp:
+        fig.savefig(tmp, dpi=100)
     plt.close(fig)

@@ -10,7 +10,7 @@ import re
 from dataclasses import dataclass
 from typing import Sequence
 
-from gscan_ros.errors import CommandError
+from gscan_ros.errors import CommandError, quoted
 from gscan_ros.world.types import (
     ADVERBS,
     COLOR_ADJECTIVES,
@@ -73,13 +73,13 @@ class CommandFrame:
         elif verb in TRANSITIVE_VERBS:
             prefix = (verb, "a")
         else:
-            raise CommandError(f"command {text!r}: expected a verb (walk, push, pull) first, got {verb!r}")
+            raise CommandError(f"command {quoted(text)}: expected a verb (walk, push, pull) first, got {quoted(verb)}")
         if toks[: len(prefix)] != prefix:
-            raise CommandError(f"command {text!r}: expected it to start with {' '.join(prefix)!r}")
+            raise CommandError(f"command {quoted(text)}: expected it to start with {' '.join(prefix)!r}")
         rest = list(toks[len(prefix):])
         manner = rest.pop() if rest and rest[-1] in ADVERBS else None
         if not rest or rest[-1] not in NOUNS:
-            raise CommandError(f"command {text!r}: expected a noun ({', '.join(NOUNS)}) before the adverb/end")
+            raise CommandError(f"command {quoted(text)}: expected a noun ({', '.join(NOUNS)}) before the adverb/end")
         shape = rest.pop()
         color = rest.pop(0) if rest and rest[0] in COLOR_ADJECTIVES else None
         size = rest.pop(0) if rest and rest[0] in SIZE_ADJECTIVES else None

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Sequence
 
-from gscan_ros.errors import SituationError
+from gscan_ros.errors import SituationError, quoted
 from gscan_ros.world.command import CommandFrame
 from gscan_ros.world.types import Action, Heading, Position, Situation, WorldObject
 from gscan_ros.world.world import World
@@ -45,11 +45,11 @@ def resolve_target(situation: Situation, command: CommandFrame | str | Sequence[
         candidates = [o for o in candidates if o.size == extreme]
     referent = " ".join(w for w in (frame.color, frame.size, frame.shape) if w)
     if not candidates:
-        raise SituationError(f"situation.placed_objects: no object matches {referent!r}")
+        raise SituationError(f"situation.placed_objects: no object matches {quoted(referent)}")
     if len(candidates) > 1:
         cells = ", ".join(str(tuple(o.position)) for o in candidates)
         raise SituationError(
-            f"situation.placed_objects: {referent!r} is ambiguous ({len(candidates)} objects at {cells})")
+            f"situation.placed_objects: {quoted(referent)} is ambiguous ({len(candidates)} objects at {cells})")
     return candidates[0]
 
 

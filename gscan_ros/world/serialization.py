@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from gscan_ros.errors import SituationError
+from gscan_ros.errors import SituationError, quoted
 from gscan_ros.world.types import (
     COLORS,
     DIRECTIONS_TO_TARGET,
@@ -43,7 +43,7 @@ SITUATION_KEYS: tuple[str, ...] = (
 
 
 def _describe(value: Any) -> str:
-    return repr(value) if isinstance(value, (str, int, float, bool)) or value is None else type(value).__name__
+    return quoted(value) if isinstance(value, (str, int, float, bool)) or value is None else type(value).__name__
 
 
 def _field(d: Any, key: str, where: str) -> Any:

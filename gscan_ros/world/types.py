@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 from enum import IntEnum
 from typing import NamedTuple
 
-from gscan_ros.errors import SituationError
+from gscan_ros.errors import SituationError, quoted
 
 GRID_SIZE = 6  # the compositional splits' grid; split I is released on 12x12
 # Grid sizes the project supports end to end (world, generator, model, nodes): a size
@@ -90,7 +90,7 @@ class Action(IntEnum):
             return _TOKEN_TO_ACTION[token.strip()]
         except (KeyError, AttributeError):
             known = ", ".join(repr(t) for t in _ACTION_TOKENS.values())
-            raise InvalidActionError(f"unknown action {token!r}; known actions: {known}") from None
+            raise InvalidActionError(f"unknown action {quoted(token)}; known actions: {known}") from None
 
 
 _ACTION_TOKENS = {
@@ -236,11 +236,11 @@ def manhattan(a: Position, b: Position) -> int:
 
 def _check_object(obj: WorldObject, where: str, n: int) -> None:
     if obj.shape not in SHAPES:
-        raise SituationError(f"{where}.shape: unknown shape {obj.shape!r}; known: {', '.join(SHAPES)}")
+        raise SituationError(f"{where}.shape: unknown shape {quoted(obj.shape)}; known: {', '.join(SHAPES)}")
     if obj.color not in COLORS:
-        raise SituationError(f"{where}.color: unknown color {obj.color!r}; known: {', '.join(COLORS)}")
+        raise SituationError(f"{where}.color: unknown color {quoted(obj.color)}; known: {', '.join(COLORS)}")
     if obj.size not in SIZES or isinstance(obj.size, bool):
-        raise SituationError(f"{where}.size: expected an integer 1-4, got {obj.size!r}")
+        raise SituationError(f"{where}.size: expected an integer 1-4, got {quoted(obj.size)}")
     _check_position(obj.position, f"{where}.position", n)
 
 
@@ -259,7 +259,7 @@ def _validate_situation(s: Situation) -> None:
     setf = object.__setattr__
     n = s.grid_size
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-        raise SituationError(f"situation.grid_size: expected a positive integer, got {n!r}")
+        raise SituationError(f"situation.grid_size: expected a positive integer, got {quoted(n)}")
     if n not in SUPPORTED_GRID_SIZES:
         raise SituationError(f"situation.grid_size: {n} is not supported ({_describe_grid_sizes()})")
     setf(s, "agent_position", Position(*s.agent_position))

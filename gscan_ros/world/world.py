@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gscan_ros.errors import InvalidActionError
+from gscan_ros.errors import InvalidActionError, quoted
 from gscan_ros.world.types import (
     AGENT_CHANNEL,
     HEADING_CHANNEL0,
@@ -54,7 +54,7 @@ def _invalid(action: object) -> InvalidActionError:
         except InvalidActionError as err:
             return err
     known = ", ".join(repr(a.token) for a in WORLD_ACTIONS)
-    return InvalidActionError(f"unknown action {action!r}; known actions: {known}")
+    return InvalidActionError(f"unknown action {quoted(action)}; known actions: {known}")
 
 
 class World:

@@ -1,0 +1,65 @@
+"""A run's `metrics.jsonl`: one JSON record per line, appended as the run goes.
+
+A run killed while writing can leave its last line torn (half written). Readers skip
+a line that is not a whole record, with one warning per file; the writer cuts such a
+tail off before it appends, and writes each record as one whole line, so a resumed
+run's records never glue onto the torn one.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+_warned: set[Path] = set()
+
+
+def read_events(path: str | os.PathLike) -> list[dict]:
+    """The records of a metrics.jsonl (none when it does not exist), torn lines skipped."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8", errors="replace")
+    except FileNotFoundError:
+        return []
+    events, torn = [], 0
+    for line in text.splitlines():
+        try:
+            record = json.loads(line)
+        except ValueError:
+            record = None
+        if isinstance(record, dict):
+            events.append(record)
+        else:
+            torn += 1
+    if torn:
+        _warn_once(path, f"{path}: skipped {torn} line(s) that are not whole records (torn by a killed run)")
+    return events
+
+
+def append_event(path: str | os.PathLike, record: dict) -> None:
+    """Append `record` as one line, in one write, after cutting off a torn last line."""
+    data = (json.dumps(record) + "\n").encode()
+    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_APPEND | os.O_CLOEXEC, 0o644)
+    try:
+        _cut_torn_tail(Path(path), fd)
+        os.write(fd, data)
+    finally:
+        os.close(fd)
+
+
+def _cut_torn_tail(path: Path, fd: int) -> None:
+    size = os.fstat(fd).st_size
+    if not size or os.pread(fd, 1, size - 1) == b"\n":
+        return
+    tail = os.pread(fd, min(size, 1 << 20), max(size - (1 << 20), 0))  # records are a few kB
+    keep = size - len(tail) + tail.rfind(b"\n") + 1
+    os.ftruncate(fd, keep)
+    _warn_once(path, f"{path}: removed a torn last line ({size - keep} bytes) left by a killed run")
+
+
+def _warn_once(path: Path, message: str) -> None:
+    if path not in _warned:
+        _warned.add(path)
+        log.warning(message)

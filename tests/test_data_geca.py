@@ -1,0 +1,128 @@
+"""GECA augmentation (`gscan-ros augment --method geca`): the substitution itself, the hold-out
+filter, determinism, grounded examples, untouched splits and the CLI's refusals."""
+import pytest
+
+from gscan_ros.cli import main
+from gscan_ros.cli.verify import check_episode
+from gscan_ros.data.dataset import Example, iter_raw_examples, read_header
+from gscan_ros.data.geca import augment
+from gscan_ros.data.generate import GenerationConfig, generate_dataset
+from gscan_ros.data.io import iter_episodes
+from gscan_ros.world import demonstrate
+from gscan_ros.world.command import split_command
+from gscan_ros.world.types import Heading, Position, Situation, WorldObject
+
+
+def _example(command: str, shape: str, color: str, agent: tuple[int, int], target: tuple[int, int]) -> Example:
+    obj = WorldObject(shape, color, 2, Position(*target))
+    situation = Situation(Position(*agent), Heading.EAST, (obj,), target_object=obj)
+    return Example(tokens=split_command(command), situation=situation,
+                   target_commands=tuple(demonstrate(situation, command)))
+
+
+# "red" and "yellow" fill the template "walk to a _ circle" with the same route, so they
+# are substitutable; "walk to a red square" (another route) then yields "walk to a yellow
+# square", which split B (yellow squares called yellow) holds out.
+TRAIN = [
+    _example("walk to a red circle", "circle", "red", (0, 0), (0, 2)),
+    _example("walk to a yellow circle", "circle", "yellow", (0, 0), (0, 2)),
+    _example("walk to a red square", "square", "red", (3, 1), (1, 1)),
+]
+
+
+def test_substitutable_fragments_make_a_grounded_new_example():
+    report = augment(TRAIN, examples=5, seed=0)
+    assert [e.command for e in report.added] == ["walk to a yellow square"]
+    new = report.added[0]
+    assert new.target_commands == TRAIN[2].target_commands  # the route of the template's example
+    target = new.situation.target_object
+    assert (target.shape, target.color, target.position) == ("square", "yellow", Position(1, 1))
+    assert check_episode(new.to_episode()) is None
+
+
+def test_a_kind_the_dataset_holds_out_is_dropped_unless_kept():
+    dropped = augment(TRAIN, examples=5, seed=0, held_out=["visual_easier"])
+    assert dropped.added == [] and dropped.held_out_kinds == {"visual_easier": 1}
+    kept = augment(TRAIN, examples=5, seed=0, held_out=["visual_easier"], keep_held_out=True)
+    assert [e.command for e in kept.added] == ["walk to a yellow square"]
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    out = tmp_path_factory.mktemp("base")
+    generate_dataset(out, GenerationConfig(seed=3, max_examples=2000), workers=1)
+    return out
+
+
+def _augmented(dataset, out, seed: int, *extra: str):
+    argv = ["augment", "--data", str(dataset), "--out", str(out), "--method", "geca", "--examples", "40",
+            "--seed", str(seed), "--quiet", *extra]
+    assert main(argv) == 0
+    return out / "dataset.txt"
+
+
+def _splits(path) -> dict[str, list[dict]]:
+    out: dict[str, list[dict]] = {}
+    for split, _, raw in iter_raw_examples(path):
+        out.setdefault(split, []).append(raw)
+    return out
+
+
+def test_output_is_the_input_plus_grounded_geca_examples(dataset, tmp_path):
+    path = _augmented(dataset, tmp_path / "a", 0)
+    before, after = _splits(dataset), _splits(path)
+    assert list(after) == list(before)
+    assert all(after[s] == before[s] for s in before if s != "train")
+    base = len(before["train"])
+    assert after["train"][:base] == before["train"] and len(after["train"]) == base + 40
+    record = read_header(path).extra["gscan_ros"]["augmentation"]
+    assert record["added"] == 40 and record["train_indices"] == [base, base + 40]
+    for index, raw in enumerate(after["train"][base:], start=base):
+        example = Example.from_json(raw)
+        assert check_episode(example.to_episode("train", index)) is None, example.command
+
+
+def test_same_seed_same_bytes_other_seed_other_examples(dataset, tmp_path):
+    first = _augmented(dataset, tmp_path / "a", 0).read_bytes()
+    assert _augmented(dataset, tmp_path / "b", 0).read_bytes() == first
+    other = _augmented(dataset, tmp_path / "c", 1).read_bytes()
+    assert other != first
+
+
+def test_an_existing_output_needs_overwrite(dataset, tmp_path, capsys):
+    path = _augmented(dataset, tmp_path / "a", 0)
+    mine = path.read_bytes()
+    argv = ["augment", "--data", str(dataset), "--out", str(tmp_path / "a"), "--method", "geca", "--quiet"]
+    assert main(argv) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--overwrite" in err[0]
+    assert path.read_bytes() == mine
+    assert _augmented(dataset, tmp_path / "a", 1, "--overwrite").read_bytes() != mine
+
+
+@pytest.mark.parametrize("content, names", [
+    ("{}", "no train examples"),
+    ('{"examples": {"train": [{"command": "walk,to,a,circle"}]}}', "example 0 of split 'train'"),
+])
+def test_bad_input_is_one_line_exit_1_and_writes_nothing(tmp_path, capsys, content, names):
+    (tmp_path / "in").mkdir()
+    (tmp_path / "in" / "dataset.txt").write_text(content)
+    argv = ["augment", "--data", str(tmp_path / "in"), "--out", str(tmp_path / "out"), "--method", "geca", "--quiet"]
+    assert main(argv) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("gscan-ros augment: error:") and names in err[0], err
+    assert not (tmp_path / "out").exists()
+
+
+def test_the_output_folder_may_not_be_the_input_folder(dataset, capsys):
+    assert main(["augment", "--data", str(dataset), "--out", str(dataset), "--method", "geca", "--quiet"]) == 1
+    assert "input" in capsys.readouterr().err
+
+
+def test_bag_data_is_read_too(tmp_path):
+    bags = tmp_path / "bags"
+    generate_dataset(bags, GenerationConfig(seed=3, max_examples=600), workers=1, fmt="mcap")
+    path = _augmented(bags, tmp_path / "a", 0)
+    before = sum(1 for _ in iter_episodes(bags, ["train"]))
+    assert read_header(path).extra["gscan_ros"]["augmentation"]["train_indices"] == [before, before + 40]
+    assert all(check_episode(ep) is None for ep in iter_episodes(path, ["train"]))

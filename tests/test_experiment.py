@@ -6,6 +6,7 @@ import os
 import re
 import socket
 import subprocess
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -13,8 +14,19 @@ import yaml
 
 from gscan_ros.cli import main
 from gscan_ros.cli.args import available_cpus
+from gscan_ros.data.dataset import read_header
+from gscan_ros.data.io import DATASET_MANIFEST
 from gscan_ros.model.runtime import MKL_SHIM, mkl_shim_env
-from gscan_ros.training.experiment import RunState, load_plan, resolve_config, work_order
+from gscan_ros.outputs import PARTIAL
+from gscan_ros.training.experiment import (
+    DataRecipe,
+    Runner,
+    RunState,
+    augment_base,
+    load_plan,
+    resolve_config,
+    work_order,
+)
 from gscan_ros.training.failures import FAILURE_KINDS
 from gscan_ros.training.paper_figures import TABLE1, TABLE2
 
@@ -23,15 +35,17 @@ TINY = {"max_updates": 2, "batch_size": 16, "validate_every": 2, "checkpoint_eve
         "max_dev_examples": 8, "lexicon": "none",
         "model": {"rnn_dim": 8, "rnn_layers": 1, "cnn_channels": 4, "att_dim": 4}}
 SPLITS = ["test", "visual"]
+TINY_DATA = {"examples": 300, "seed": 0}
 
 
-def write_plan(path: Path, root: Path, defaults: dict = TINY, runs: list | None = None) -> Path:
+def write_plan(path: Path, root: Path, defaults: dict = TINY, runs: list | None = None,
+               data: dict = TINY_DATA) -> Path:
     plan = {
         "results": str(root / "results"),
         "data_root": str(root / "data"),
         "defaults": defaults,
         "evaluation": {"max_examples": 5},
-        "datasets": {"tiny": {"examples": 300, "seed": 0}},
+        "datasets": {"tiny": data},
         "runs": runs or [
             {"name": "semantic", "config": str(REPO / "configs/semantic.yaml"), "data": "tiny", "seeds": [0],
              "splits": SPLITS},
@@ -133,6 +147,72 @@ def test_a_run_whose_checkpoints_were_lost_starts_over_keeping_the_earlier_attem
     assert f"the earlier attempt's files moved to {archive}" in capsys.readouterr().out
 
 
+GECA_TINY = {**TINY, "model": {"hidden": 8, "embedding_dim": 8, "cnn_channels": 4}}
+GECA_DATA = {**TINY_DATA, "augment": "geca"}
+
+
+def write_geca_plan(root: Path) -> Path:
+    runs = [{"name": "geca", "config": str(REPO / "configs/geca.yaml"), "data": "tiny", "seeds": [0],
+             "splits": SPLITS}]
+    return write_plan(root / "plan.yaml", root, defaults=GECA_TINY, runs=runs, data=GECA_DATA)
+
+
+@pytest.mark.slow
+def test_runner_augments_the_generated_dataset_and_trains_on_it(tmp_path):
+    assert experiment(write_geca_plan(tmp_path)) == 0
+    (data,) = (tmp_path / "data").iterdir()  # the base dataset's scratch folder is gone
+    assert sorted(p.name for p in data.iterdir()) == ["dataset.txt", "generate.log", "recipe.json"]
+    base, log = augment_base(data), (data / "generate.log").read_text()
+    assert f"gscan-ros generate --out {base} --split-kind compositional --seed 0 --format mcap --examples 300" in log
+    assert f"gscan-ros augment --data {base} --out {data} --method geca --seed 0 --quiet\n" in log
+    base_train, train = read_header(data / "dataset.txt").extra["gscan_ros"]["augmentation"]["train_indices"]
+    assert train > base_train
+    run = tmp_path / "results/geca_s0"
+    start = json.loads((run / "metrics.jsonl").read_text().splitlines()[0])
+    assert start["event"] == "start" and start["train_examples"] == train  # the augmented train split
+    results = json.loads((run / "results.json").read_text())
+    assert (results["data"]["augment"], results["data"]["augment_seed"], results["data"]["dir"]) == \
+        ("geca", 0, str(data))
+    assert set(results["splits"]) == set(SPLITS) and results["splits"]["test"]["examples"] == 5
+    assert json.loads((data / "recipe.json").read_text())["augment"] == "geca"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("base_finished", [True, False], ids=["killed augmenting", "killed generating the base"])
+def test_an_interrupted_augmented_dataset_is_finished_from_its_base(tmp_path, base_finished):
+    plan = load_plan(write_geca_plan(tmp_path))
+    recipe = plan.datasets["tiny"]
+    data = recipe.directory(plan.data_root)
+    base = augment_base(data)
+    assert main(["generate", "--out", str(base), *recipe.flags(), "--quiet"]) == 0
+    if not base_finished:  # killed while its bags were moved in: the manifest comes last
+        (base / DATASET_MANIFEST).unlink()
+    gone = subprocess.Popen(["true"])
+    gone.wait()
+    (data / f".augment{PARTIAL}{gone.pid}").mkdir(parents=True)  # the killed augment's scratch
+    (data / "generate.log").write_text("# the interrupted start\n")
+    assert Runner(plan, progress=False, echo=lambda line: None)._dataset(recipe) == data
+    commands = [line for line in (data / "generate.log").read_text().splitlines() if line.startswith("# 2")]
+    generated = [] if base_finished else [f"gscan-ros generate --out {base} {' '.join(recipe.flags())} "
+                                          "--workers 1 --quiet --overwrite"]
+    assert [c.split(" ", 3)[3] for c in commands] == generated + [
+        f"gscan-ros augment --data {base} --out {data} --method geca --seed 0 --quiet --overwrite"]
+    assert sorted(p.name for p in data.iterdir()) == ["dataset.txt", "generate.log", "recipe.json"]
+    assert not base.exists() and read_header(data / "dataset.txt").extra["gscan_ros"]["augmentation"]["seed"] == 0
+
+
+def test_augment_keys_give_the_dataset_a_folder_of_its_own():
+    folders = {name: recipe.directory(Path("d")).name
+               for name, recipe in load_plan(REPO / "configs/experiments/paper.yaml").datasets.items()}
+    # the folders the plan's datasets had before there was `augment`: not regenerated
+    assert {name: folder for name, folder in folders.items() if name != "compositional_geca"} == {
+        "compositional": "compositional-cd3ca4a4", "kshot5": "kshot5-ab3d43cd", "kshot10": "kshot10-585800e1",
+        "kshot50": "kshot50-1b0ba1e4", "length": "length-c3a26e31"}
+    plain, geca = DataRecipe("x", seed=3), DataRecipe("x", seed=3, augment="geca")
+    assert geca.augment_seed == 3 and geca.directory(Path("d")) == replace(geca, augment_seed=3).directory(Path("d"))
+    assert len({r.directory(Path("d")) for r in (plain, geca, replace(geca, augment_seed=4))}) == 3
+
+
 def test_a_live_lock_means_running_and_a_dead_one_is_stale(tmp_path, capsys):
     plan = write_plan(tmp_path / "plan.yaml", tmp_path)
     live, dead = tmp_path / "results/semantic_s0", tmp_path / "results/state_s0"
@@ -180,6 +260,9 @@ BAD_PLANS = [
      "runs[0].splits"),
     ({"datasets": {"tiny": {"k_shot": -1}}}, "datasets.tiny.k_shot"),
     ({"datasets": {"tiny": {"examples": "many"}}}, "datasets.tiny.examples"),
+    ({"datasets": {"tiny": {"augment": "mixup"}}}, "datasets.tiny.augment"),
+    ({"datasets": {"tiny": {"augment_seed": 1}}}, "datasets.tiny.augment_seed needs"),
+    ({"datasets": {"tiny": {"augment": "geca", "path": "data"}}}, "a path: dataset is used as it is"),
     ({"defaults": {"seed": 3}}, "defaults.seed"),
     ({"defaults": {"learning_rate": 3}}, "learning_rate"),
     ({"runs": [{"name": "x", "config": "{config}", "data": "tiny", "seeds": [0], "set": {"model.rnn_dim": -1}}]},
@@ -249,13 +332,19 @@ def test_paper_plan_covers_every_column_with_one_recipe():
     budgets = {run.column: resolve_config(plan, run).max_updates for run in plan.runs}
     assert len(set(budgets.values()) - {budgets.pop("seq2seq_160k")}) == 1  # one budget, and its named variant
     columns = {column for column, _ in seeds}
-    assert columns == {"seq2seq", "seq2seq_160k", "state", "attention+state", "constituency", "dependency",
-                       "semantic", "semantic_minmax", "semantic_add", "dependency_cosine",
-                       "semantic_faithful", "semantic_percommand", "semantic_oversample"}
-    assert all(len(s) == 3 for (column, _), s in seeds.items() if column in ("semantic", "semantic_faithful"))
+    main = {"seq2seq", "geca", "auxloss", "lcgn", "state", "attention+state", "constituency", "dependency",
+            "semantic"}
+    assert columns == main | {"seq2seq_160k", "semantic_minmax", "semantic_add", "dependency_cosine",
+                              "semantic_faithful", "semantic_percommand", "semantic_percommand_screened",
+                              "semantic_oversample", "semantic_screened", "attention+state_screened"}
+    # One selection rule: every main-table run trains its seed as it comes; three seeds per column.
+    assert all(len(s) == 3 for (column, _), s in seeds.items() if column in main | {"semantic_faithful"})
+    for run in plan.runs:
+        screened = resolve_config(plan, run).screen_seeds > 1
+        assert screened == (run.column.endswith("_screened") or "(screened)" in run.title), run.name
     assert {r.data.k_shot for r in plan.runs if r.data.split_kind == "compositional"} == {1, 5, 11, 51}
-    first = ["semantic_s2", "semantic_len13_s0", "semantic_faithful_s0", "semantic_faithful_s1", "semantic_faithful_s2"]
-    assert [r.name for r in plan.runs[:len(first)]] == first  # `first:` (Semantic's third seed, then issue #12's)
+    first = ["semantic_s0", "semantic_s1", "semantic_s2", "auxloss_s0", "lcgn_s0"]
+    assert [r.name for r in plan.runs[:len(first)]] == first  # `first:` (Semantic's seeds, then the comparison systems)
     order = {entry: sorted(s) for (_, entry), s in seeds.items()}
     rounds = [order[r.entry].index(r.seed) for r in plan.runs[len(first):]]
     assert rounds == sorted(rounds)  # then seed rounds: every column's first seed before any second seed
@@ -264,15 +353,22 @@ def test_paper_plan_covers_every_column_with_one_recipe():
     faithful = resolve_config(plan, next(r for r in plan.runs if r.column == "semantic_faithful"))
     assert (faithful.batch_size, faithful.lr, faithful.lr_decay, faithful.screen_seeds) == (200, 0.001, "none", 0)
     semantic = resolve_config(plan, next(r for r in plan.runs if r.name == "semantic_s0")).to_dict()
-    for run in (r for r in plan.runs if r.column == "semantic_percommand"):  # the batching alone differs
-        changed = {k for k, v in resolve_config(plan, run).to_dict().items() if semantic[k] != v}
+    screened = resolve_config(plan, next(r for r in plan.runs if r.name == "semantic_screened_s0")).to_dict()
+    for run in (r for r in plan.runs if r.column.startswith("semantic_percommand")):  # the batching alone differs
+        base = screened if run.column.endswith("_screened") else semantic
+        changed = {k for k, v in resolve_config(plan, run).to_dict().items() if base[k] != v}
         assert changed == {"batching"} and resolve_config(plan, run).batching == "per_command"
     oversample = next(r for r in plan.runs if r.column == "semantic_oversample")  # its sampling alone differs
-    changed = {k for k, v in resolve_config(plan, oversample).to_dict().items() if semantic[k] != v}
+    changed = {k for k, v in resolve_config(plan, oversample).to_dict().items() if screened[k] != v}
     assert changed == {"oversample_word", "oversample_factor"} and oversample.data.k_shot == 11
     cosine = next(r for r in plan.runs if r.column == "dependency_cosine")
     assert resolve_config(plan, cosine).model["overlap"] == "cosine" and resolve_config(plan, cosine).parser == \
         "dependency"
+    seq2seq = next(r for r in plan.runs if r.name == "seq2seq_s0")
+    for geca in (r for r in plan.runs if r.column == "geca"):  # the seq2seq baseline; its train split alone differs
+        assert resolve_config(plan, geca).to_dict() == resolve_config(plan, seq2seq).to_dict() | {"seed": geca.seed}
+        assert (geca.data.augment, geca.data.augment_seed) == ("geca", 0)
+        assert replace(geca.data, name="compositional", augment=None, augment_seed=None) == seq2seq.data
 
 
 # ------------------------------------------------------------------------------ report

@@ -36,12 +36,12 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Sequence
 
-import yaml
-
+from gscan_ros.data.io import DATASET_MANIFEST
 from gscan_ros.data.splits import SPLIT_KINDS, TEST_SPLITS
-from gscan_ros.errors import GscanError
+from gscan_ros.errors import GscanError, quoted, shortened
 from gscan_ros.model.runtime import mkl_shim_env
-from gscan_ros.training.config import read_yaml
+from gscan_ros.training.metrics_log import read_events
+from gscan_ros.user_files import parse_yaml, read_json, read_yaml
 
 CLI = (sys.executable, "-m", "gscan_ros.cli")
 # Config keys that may change without making a run stale: the budget and the machine.
@@ -51,6 +51,7 @@ RUNNER_KEYS = ("seed", "threads")
 STATES = ("done", "evaluate", "running", "resume", "new", "stale")
 LOCK = ".lock"
 DATASET_DONE = "recipe.json"
+GENERATE_LOG = "generate.log"  # a dataset folder's log: the generate (and augment) commands' output
 EVAL_SCRATCH = ".evaluation"
 # Where a restarted run's earlier attempt is kept (hidden: the report reads only live runs).
 REPLACED = ".replaced"
@@ -68,7 +69,8 @@ class ExperimentError(GscanError):
 # ------------------------------------------------------------------------------ plan
 @dataclass(frozen=True)
 class DataRecipe:
-    """A dataset: `generate` flags, or `path` to an existing dataset used as it is."""
+    """A dataset: `generate` flags (and an `augment` method for its train split), or `path`
+    to an existing dataset used as it is."""
 
     name: str
     split_kind: str = "compositional"
@@ -81,6 +83,12 @@ class DataRecipe:
     percentage_dev: float | None = None
     cut_off_target_length: int | None = None
     path: str | None = None
+    augment: str | None = None  # a `gscan-ros augment --method`
+    augment_seed: int | None = None  # its --seed; None: `seed`
+
+    def __post_init__(self):
+        if self.augment is not None and self.augment_seed is None:
+            object.__setattr__(self, "augment_seed", self.seed)
 
     def flags(self) -> list[str]:
         """`gscan-ros generate` arguments (besides --out, --workers, --quiet)."""
@@ -94,16 +102,22 @@ class DataRecipe:
                 out += [f"--{key.replace('_', '-')}", str(value)]
         return out
 
+    def augment_flags(self) -> list[str]:
+        """`gscan-ros augment` arguments (besides --data, --out, --quiet); none without `augment`."""
+        return [] if self.augment is None else ["--method", self.augment, "--seed", str(self.augment_seed)]
+
     def directory(self, data_root: Path) -> Path:
-        """`path`, or `<data_root>/<name>-<hash of the flags>` (new flags, new folder)."""
+        """`path`, or `<data_root>/<name>-<hash of the flags>` (new flags, new folder; a
+        recipe without `augment` hashes its generate flags alone, as before there was one)."""
         if self.path is not None:
             return Path(self.path)
-        digest = hashlib.sha256(json.dumps(self.flags()).encode()).hexdigest()[:8]
+        digest = hashlib.sha256(json.dumps(self.flags() + self.augment_flags()).encode()).hexdigest()[:8]
         return data_root / f"{self.name}-{digest}"
 
     def record(self) -> dict:
         """What results.json says about the data."""
-        keys = ("name", "split_kind", "examples", "k_shot", "seed", "cut_off_target_length", "path")
+        keys = ("name", "split_kind", "examples", "k_shot", "seed", "cut_off_target_length", "path", "augment",
+                "augment_seed")
         return {k: getattr(self, k) for k in keys}
 
 
@@ -153,7 +167,7 @@ class Plan:
 _TOP_KEYS = ("results", "data_root", "defaults", "evaluation", "datasets", "runs", "first")
 _DATASET_KEYS = {"split_kind": str, "examples": (int, str), "k_shot": int, "seed": int, "grid_size": int,
                  "num_resampling": int, "percentage_train": float, "percentage_dev": float,
-                 "cut_off_target_length": int, "path": str}
+                 "cut_off_target_length": int, "path": str, "augment": str, "augment_seed": int}
 _RUN_KEYS = ("name", "column", "title", "paper", "config", "data", "seeds", "set", "splits", "max_eval_examples")
 _EVAL_KEYS = ("max_examples", "batch_size")
 
@@ -193,27 +207,28 @@ def load_plan(path: str | Path, results: str | Path | None = None, data_root: st
                 raise PlanError(f"{where}: {key}.{required} is missing")
         name = _text(entry["name"], where, f"{key}.name")
         if not name.replace("_", "").replace("-", "").isalnum():
-            raise PlanError(f"{where}: {key}.name must be letters, digits, '_' or '-', got {name!r}")
+            raise PlanError(f"{where}: {key}.name must be letters, digits, '_' or '-', got {quoted(name)}")
         config = Path(_text(entry["config"], where, f"{key}.config"))
         if not config.is_file():
-            raise PlanError(f"{where}: {key}.config {str(config)!r} is not a file")
+            raise PlanError(f"{where}: {key}.config {quoted(str(config))} is not a file")
         data = _text(entry["data"], where, f"{key}.data")
         if data not in datasets:
-            raise PlanError(f"{where}: {key}.data {data!r} is not in datasets ({', '.join(datasets)})")
+            raise PlanError(f"{where}: {key}.data {quoted(data)} is not in datasets "
+                            f"({shortened(', '.join(map(str, datasets)))})")
         seeds = entry["seeds"]
         if not (isinstance(seeds, list) and seeds and all(isinstance(s, int) and not isinstance(s, bool)
                                                           and s >= 0 for s in seeds)) or len(set(seeds)) < len(seeds):
-            raise PlanError(f"{where}: {key}.seeds must be a list of distinct integers >= 0, got {seeds!r}")
+            raise PlanError(f"{where}: {key}.seeds must be a list of distinct integers >= 0, got {quoted(seeds)}")
         column = _text(entry.get("column", name), where, f"{key}.column")
         paper = entry.get("paper", column if column in COLUMN_TITLES else None)
         if paper is not None and paper not in COLUMN_TITLES:
-            raise PlanError(f"{where}: {key}.paper must be one of {list(COLUMN_TITLES)}, got {paper!r}")
+            raise PlanError(f"{where}: {key}.paper must be one of {list(COLUMN_TITLES)}, got {quoted(paper)}")
         title = _text(entry.get("title", COLUMN_TITLES.get(column, column)), where, f"{key}.title")
         kind = datasets[data].split_kind
         splits = entry.get("splits", list(TEST_SPLITS[kind]))
         if not (isinstance(splits, list) and splits and all(s in TEST_SPLITS[kind] for s in splits)):
             raise PlanError(f"{where}: {key}.splits must be a list of {kind} test splits "
-                            f"{list(TEST_SPLITS[kind])}, got {splits!r}")
+                            f"{list(TEST_SPLITS[kind])}, got {quoted(splits)}")
         overrides = defaults + _overrides(entry.get("set") or {}, where, f"{key}.set")
         eval_max = _int(entry.get("max_eval_examples", max_examples), where, f"{key}.max_eval_examples", 0)
         parsed.append((name, column, title, paper, config, datasets[data], seeds, tuple(overrides), tuple(splits),
@@ -221,7 +236,7 @@ def load_plan(path: str | Path, results: str | Path | None = None, data_root: st
     runs = _expand(parsed, where)
     first = doc.get("first") or []
     if not (isinstance(first, list) and all(isinstance(n, str) for n in first)):
-        raise PlanError(f"{where}: first must be a list of run or runs[] entry names, got {first!r}")
+        raise PlanError(f"{where}: first must be a list of run or runs[] entry names, got {quoted(first)}")
     if first:
         taken = _named(runs, first, where)
         names = {r.name for r in taken}
@@ -243,7 +258,7 @@ def _expand(entries: list[tuple], where: str) -> list[RunSpec]:
                 continue
             run_name = f"{name}_s{seeds[position]}"
             if run_name in names:
-                raise PlanError(f"{where}: run {run_name!r} appears twice (runs[].name must be unique)")
+                raise PlanError(f"{where}: run {quoted(run_name)} appears twice (runs[].name must be unique)")
             names.add(run_name)
             runs.append(RunSpec(index=len(runs), name=run_name, entry=name, column=column, title=title,
                                 paper_column=paper, config=config, data=data, seed=seeds[position],
@@ -257,7 +272,7 @@ def _named(runs: list[RunSpec], names: Sequence[str], where: str) -> list[RunSpe
     the plan does not have."""
     unknown = sorted(set(names) - {r.entry for r in runs} - {r.name for r in runs})
     if unknown:
-        raise PlanError(f"{where}: no run or runs[] entry named {', '.join(map(repr, unknown))}")
+        raise PlanError(f"{where}: no run or runs[] entry named {shortened(', '.join(map(repr, unknown)))}")
     named: dict[str, RunSpec] = {}
     for name in names:
         named.update((r.name, r) for r in runs if name in (r.entry, r.name) and r.name not in named)
@@ -265,7 +280,7 @@ def _named(runs: list[RunSpec], names: Sequence[str], where: str) -> list[RunSpe
 
 
 def _dataset(name, spec, where: str) -> DataRecipe:
-    key = f"datasets.{name}"
+    key = f"datasets.{shortened(str(name))}"
     _mapping(spec, where, key)
     _known(spec, tuple(_DATASET_KEYS), where, f"{key}.")
     values = {}
@@ -273,18 +288,35 @@ def _dataset(name, spec, where: str) -> DataRecipe:
         kinds = _DATASET_KEYS[field_name]
         kinds = (int, float) if kinds is float else kinds
         if not isinstance(value, kinds) or isinstance(value, bool):
-            raise PlanError(f"{where}: {key}.{field_name} has the wrong type: {value!r}")
+            raise PlanError(f"{where}: {key}.{field_name} has the wrong type: {quoted(value)}")
         values[field_name] = value
     kind = values.get("split_kind", "compositional")
     if kind not in SPLIT_KINDS:
-        raise PlanError(f"{where}: {key}.split_kind must be one of {list(SPLIT_KINDS)}, got {kind!r}")
+        raise PlanError(f"{where}: {key}.split_kind must be one of {list(SPLIT_KINDS)}, got {quoted(kind)}")
     examples = values.pop("examples", "full")
     if examples != "full" and not (isinstance(examples, int) and examples > 0):
-        raise PlanError(f"{where}: {key}.examples must be 'full' or a positive integer, got {examples!r}")
-    for int_key in ("k_shot", "seed"):
+        raise PlanError(f"{where}: {key}.examples must be 'full' or a positive integer, got {quoted(examples)}")
+    for int_key in ("k_shot", "seed", "augment_seed"):
         if values.get(int_key, 0) < 0:
-            raise PlanError(f"{where}: {key}.{int_key} must be >= 0, got {values[int_key]!r}")
+            raise PlanError(f"{where}: {key}.{int_key} must be >= 0, got {quoted(values[int_key])}")
+    _augment_keys(values, where, key)
     return DataRecipe(name=str(name), examples=None if examples == "full" else examples, **values)
+
+
+def _augment_keys(values: dict, where: str, key: str) -> None:
+    """`augment` names a method of `gscan-ros augment` and applies to generated data only;
+    `augment_seed` goes with it."""
+    from gscan_ros.data.geca import AUGMENT_METHODS
+
+    method = values.get("augment")
+    if method is None:
+        if "augment_seed" in values:
+            raise PlanError(f"{where}: {key}.augment_seed needs {key}.augment")
+        return
+    if method not in AUGMENT_METHODS:
+        raise PlanError(f"{where}: {key}.augment must be one of {list(AUGMENT_METHODS)}, got {quoted(method)}")
+    if "path" in values:
+        raise PlanError(f"{where}: {key}.augment applies to a generated dataset; a path: dataset is used as it is")
 
 
 def _overrides(block, where: str, key: str) -> list[str]:
@@ -303,33 +335,37 @@ def _overrides(block, where: str, key: str) -> list[str]:
 
 def _yaml_text(value) -> str:
     """`value` as text that `--set` (YAML) reads back unchanged: plain when it already
-    does (attention+state), else JSON (a quoted '1', a list)."""
-    if isinstance(value, str) and yaml.safe_load(value) == value:
-        return value
+    does (attention+state), else JSON (a quoted '1', a list, text that is no YAML)."""
+    if isinstance(value, str):
+        try:
+            if parse_yaml(value, "", PlanError) == value:
+                return value
+        except PlanError:
+            pass
     return json.dumps(value)
 
 
 def _mapping(value, where: str, key: str) -> dict:
     if not isinstance(value, dict):
-        raise PlanError(f"{where}: {key} must be a mapping, got {value!r}")
+        raise PlanError(f"{where}: {key} must be a mapping, got {quoted(value)}")
     return value
 
 
 def _known(mapping: dict, known: tuple, where: str, prefix: str) -> None:
     unknown = sorted(str(k) for k in mapping if k not in known)
     if unknown:
-        raise PlanError(f"{where}: unknown key {prefix}{unknown[0]} (known: {', '.join(known)})")
+        raise PlanError(f"{where}: unknown key {prefix}{shortened(unknown[0])} (known: {', '.join(known)})")
 
 
 def _text(value, where: str, key: str) -> str:
     if not isinstance(value, str) or not value:
-        raise PlanError(f"{where}: {key} must be a non-empty string, got {value!r}")
+        raise PlanError(f"{where}: {key} must be a non-empty string, got {quoted(value)}")
     return value
 
 
 def _int(value, where: str, key: str, low: int) -> int:
     if not isinstance(value, int) or isinstance(value, bool) or value < low:
-        raise PlanError(f"{where}: {key} must be an integer >= {low}, got {value!r}")
+        raise PlanError(f"{where}: {key} must be an integer >= {low}, got {quoted(value)}")
     return value
 
 
@@ -424,21 +460,6 @@ class FileLock:
 
 
 # ------------------------------------------------------------------------------ state
-def read_events(metrics: Path) -> list[dict]:
-    """metrics.jsonl's records (a line torn by a kill is skipped)."""
-    try:
-        text = metrics.read_text()
-    except FileNotFoundError:
-        return []
-    events = []
-    for line in text.splitlines():
-        try:
-            events.append(json.loads(line))
-        except ValueError:
-            continue
-    return events
-
-
 def finished_end(events: list[dict], cfg) -> dict | None:
     """The last "end" event when it closed the training (budget reached, target reached, or
     out of its time budget) and no later start reopened it; else None."""
@@ -470,10 +491,10 @@ def config_changes(run_dir: Path, cfg, events: list[dict] | None = None) -> list
     aside, model settings compared with their defaults filled in, keys only one side has
     (a field added to TrainConfig since) ignored. Empty for a run without config.yaml.
     `events` are the run's metrics.jsonl records when the caller has read them already."""
-    try:
-        old = yaml.safe_load((run_dir / "config.yaml").read_text()) or {}
-    except FileNotFoundError:
+    path = run_dir / "config.yaml"
+    if not path.is_file():
         return []
+    old = read_yaml(path, str(path), ExperimentError) or {}
     new = cfg.to_dict()
     keys = sorted((set(old) & set(new)) - set(UNTRACKED_KEYS) - {"model"})
     changed = [k for k in keys if old[k] != new[k]]
@@ -553,8 +574,8 @@ def archive_attempt(run_dir: Path) -> Path | None:
 
 def _evaluated(run_dir: Path, spec: RunSpec, end: dict) -> bool:
     try:
-        doc = json.loads((run_dir / "results.json").read_text())
-    except (OSError, ValueError):
+        doc = read_json(run_dir / "results.json", f"{run_dir}/results.json", ExperimentError)
+    except ExperimentError:
         return False
     ev = doc.get("evaluation") or {}
     return (doc.get("updates") == end["step"] and ev.get("splits") == list(spec.splits)
@@ -577,6 +598,12 @@ def dataset_state(recipe: DataRecipe, data_root: Path) -> str:
         return "ready"
     holder = FileLock(directory / LOCK).holder()
     return f"generating ({_holder_text(holder, directory / LOCK)})" if holder else "to generate"
+
+
+def augment_base(directory: Path) -> Path:
+    """The scratch folder beside an `augment` recipe's dataset folder that holds the
+    generated dataset it augments, until the augmented one is complete."""
+    return directory.with_name(f".{directory.name}.base")
 
 
 def _holder_text(holder: dict, path: Path) -> str:
@@ -630,8 +657,9 @@ class Runner:
         lines = [f"{len(states)} runs: {counts['done']} done, {counts['running']} running, {left} left "
                  f"({', '.join(f'{counts[s]} {s}' for s in ('evaluate', 'resume', 'new', 'stale') if counts[s])})"]
         recipes = {s.data.name: s.data for s in self.share}
+        names = max(map(len, recipes), default=0)
         for name, recipe in recipes.items():
-            lines.append(f"  data {name:16s} {dataset_state(recipe, self.plan.data_root):24s} "
+            lines.append(f"  data {name:{names}s} {dataset_state(recipe, self.plan.data_root):24s} "
                          f"{recipe.directory(self.plan.data_root)}")
         width = max(len(st.spec.name) for st in states)
         for st in states:
@@ -729,10 +757,10 @@ class Runner:
         scratch = run_dir / EVAL_SCRATCH
         cmd = [*CLI, "evaluate", "--checkpoint", str(run_dir / "model.pt"), "--data", str(data_dir),
                "--splits", *spec.splits, "--out", str(scratch), "--threads", str(self.threads), "--quiet",
-               "--no-predictions", "--batch-size", str(self.plan.eval_batch_size),
+               "--overwrite", "--no-predictions", "--batch-size", str(self.plan.eval_batch_size),
                "--max-examples", str(spec.eval_max_examples)]
         self._call(cmd, run_dir / "evaluate.log", lock)
-        evaluation = json.loads((scratch / "results.json").read_text())
+        evaluation = read_json(scratch / "results.json", f"{scratch}/results.json", ExperimentError)
         end = finished_end(read_events(run_dir / "metrics.jsonl"), cfg)
         if end is None:
             raise ExperimentError(f"{run_dir}/metrics.jsonl has no final 'end' event after training")
@@ -781,27 +809,45 @@ class Runner:
         return directory
 
     def _generate(self, recipe: DataRecipe, directory: Path, lock: FileLock) -> None:
+        """Generate the recipe's dataset into `directory`, recipe.json last. An `augment`
+        recipe generates its base into a scratch folder beside `directory` (`augment_base`)
+        and augments that into `directory`/dataset.txt; after an interruption a base that
+        generate finished (its manifest is written last) is augmented as it is, a half-built
+        one is generated again."""
         if (directory / DATASET_DONE).exists():
             return
-        ours = {LOCK, "generate.log"}
+        log = directory / GENERATE_LOG
+        ours = {LOCK, GENERATE_LOG}
         leftovers = [p for p in directory.iterdir() if p.name not in ours and not p.name.endswith(".tmp")]
-        if leftovers and not (directory / "generate.log").exists():
+        if leftovers and not log.exists():
             raise ExperimentError(f"dataset folder {directory} holds files the runner did not write "
                                   f"({', '.join(sorted(p.name for p in leftovers)[:3])}); move them away or "
                                   f"give the dataset as `path:` in the plan")
-        for scratch in directory.glob(".gscan_generate_*"):  # a killed generate's scratch space
+        for scratch in directory.glob(".gscan_generate_*"):  # scratch of a generate of an older version, killed
             shutil.rmtree(scratch)
-        workers = max(1, min(self.parallel * self.threads, len(os.sched_getaffinity(0))))
-        self.echo(f"generate dataset {recipe.name} into {directory} ({' '.join(recipe.flags())})")
-        log = directory / "generate.log"
-        cmd = [*CLI, "generate", "--out", str(directory), *recipe.flags(), "--workers", str(workers), "--quiet"]
-        if leftovers:
-            cmd.append("--overwrite")  # an interrupted generation of ours (generate.log is ours)
-        self._call(cmd, log, lock)
-        warm = ("import sys\nfrom gscan_ros.training.trainer import split_cache\n"
-                "for split in sys.argv[2:]:\n    split_cache(sys.argv[1], split)\n")
-        self._call([sys.executable, "-c", warm, str(directory), "train", "dev"], log, lock, "decode-once caches")
+        augmented = f", then augment {' '.join(recipe.augment_flags())}" if recipe.augment else ""
+        self.echo(f"generate dataset {recipe.name} into {directory} ({' '.join(recipe.flags())}{augmented})")
+        overwrite = bool(leftovers)  # an interrupted generation of ours (generate.log is ours): replaced
+        if recipe.augment is None:
+            self._call(self._generate_command(recipe, directory, overwrite), log, lock)
+            warm = ("import sys\nfrom gscan_ros.training.trainer import split_cache\n"
+                    "for split in sys.argv[2:]:\n    split_cache(sys.argv[1], split)\n")
+            self._call([sys.executable, "-c", warm, str(directory), "train", "dev"], log, lock, "decode-once caches")
+        else:
+            base = augment_base(directory)
+            if not (base / DATASET_MANIFEST).is_file():
+                self._call(self._generate_command(recipe, base, overwrite=base.exists()), log, lock)
+            cmd = [*CLI, "augment", "--data", str(base), "--out", str(directory), *recipe.augment_flags(), "--quiet"]
+            if overwrite:
+                cmd.append("--overwrite")
+            self._call(cmd, log, lock)
+            shutil.rmtree(base)
         (directory / DATASET_DONE).write_text(json.dumps({**recipe.record(), "flags": recipe.flags()}, indent=2) + "\n")
+
+    def _generate_command(self, recipe: DataRecipe, out: Path, overwrite: bool) -> list[str]:
+        workers = max(1, min(self.parallel * self.threads, len(os.sched_getaffinity(0))))
+        cmd = [*CLI, "generate", "--out", str(out), *recipe.flags(), "--workers", str(workers), "--quiet"]
+        return cmd + ["--overwrite"] if overwrite else cmd
 
     def _call(self, cmd: list[str], log: Path, lock: FileLock, what: str = "") -> None:
         """Run one step (a `gscan-ros` subcommand unless `what` says otherwise), output

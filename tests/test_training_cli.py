@@ -89,3 +89,22 @@ def test_a_run_is_reproduced_by_its_seed_and_by_a_resume(dataset, tmp_path):
     assert losses(again) == losses(straight) == losses(resumed)
     assert run_train(dataset, tmp_path / "other", "--set", "max_updates=4", "--set", "seed=6") == 0
     assert losses(tmp_path / "other") != losses(straight)  # the seed matters
+
+
+def test_a_run_stopped_after_its_checkpoint_logs_each_update_once(dataset, tmp_path):
+    """Stopped (killed) some updates after its last checkpoint: the resume trains those updates
+    again and its metrics.jsonl has each of them once, as a run trained straight through."""
+    torch.set_num_threads(1)
+    straight, stopped = tmp_path / "straight", tmp_path / "stopped"
+    assert run_train(dataset, straight, "--set", "max_updates=6", "--set", "seed=5") == 0
+    assert run_train(dataset, stopped, "--set", "max_updates=3", "--set", "seed=5") == 0  # last.pt at 2
+    assert read_checkpoint(stopped / "last.pt")["step"] == 3  # the end writes one too: put it back at 2
+    (stopped / "last.pt").unlink()
+    assert run_train(dataset, tmp_path / "at2", "--set", "max_updates=2", "--set", "seed=5") == 0
+    (tmp_path / "at2" / "last.pt").rename(stopped / "last.pt")
+    assert run_train(dataset, stopped, "--set", "max_updates=6", "--set", "seed=5", "--resume") == 0
+
+    def trained(run):
+        return [(e["step"], e["loss"]) for e in map(json.loads, (run / "metrics.jsonl").read_text().splitlines())
+                if e["event"] == "train"]
+    assert trained(stopped) == trained(straight)

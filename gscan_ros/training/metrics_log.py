@@ -3,7 +3,9 @@
 A run killed while writing can leave its last line torn (half written). Readers skip
 a line that is not a whole record, with one warning per file; the writer cuts such a
 tail off before it appends, and writes each record as one whole line, so a resumed
-run's records never glue onto the torn one.
+run's records never glue onto the torn one. A run resumed from its last checkpoint first
+drops the records logged after it (`rewind`): those updates are trained again, so the
+curve has each update once, however long after a checkpoint the run was stopped.
 """
 from __future__ import annotations
 
@@ -47,6 +49,18 @@ def append_event(path: str | os.PathLike, record: dict) -> None:
         os.write(fd, data)
     finally:
         os.close(fd)
+
+
+def rewind(path: str | os.PathLike, step: int) -> int:
+    """Drop the records of updates after `step` (a resume from the checkpoint at `step`);
+    returns how many were dropped. The file is replaced in one step."""
+    from gscan_ros.outputs import write_text
+
+    events = read_events(path)
+    kept = [e for e in events if not isinstance(e.get("step"), (int, float)) or e["step"] <= step]
+    if len(kept) < len(events):
+        write_text(path, "".join(json.dumps(e) + "\n" for e in kept))
+    return len(events) - len(kept)
 
 
 def _cut_torn_tail(path: Path, fd: int) -> None:

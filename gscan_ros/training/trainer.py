@@ -34,7 +34,7 @@ from gscan_ros.training.batches import EpisodeStore, EpochCursor, iterate_batche
 from gscan_ros.training.config import ConfigError, TrainConfig
 from gscan_ros.training.evaluate import evaluate_episodes, exact_match_by_group
 from gscan_ros.training.explain import step0_readings, summarize
-from gscan_ros.training.metrics_log import append_event, read_events
+from gscan_ros.training.metrics_log import append_event, read_events, rewind
 from gscan_ros.training.step import TrainingDiverged, TrainStep
 
 # Seed screening: candidate k of a run with seed s has seed s + 1000 k (distinct for runs
@@ -304,6 +304,8 @@ class Run:
         self.make_step()
         if ranks.is_main:
             self.files.create(resumed)
+            if resumed:  # the updates after the checkpoint are trained again: log them once
+                rewind(self.files.metrics, self.step)
             write_text(self.files.config, yaml.safe_dump(self.cfg.to_dict(), sort_keys=False))
             n_params = sum(p.numel() for p in self.model.parameters())
             append_event(self.files.metrics, {

@@ -86,9 +86,9 @@ class RunResult:
     lengths: dict[int, tuple[float, int]]  # split I runs: target length -> (correct, episodes), splits pooled
     screen: list[tuple[int, bool]] = field(default_factory=list)  # seed screen: (candidate seed, passed)
     kept_seed: int | None = None  # the screened seed that trained (None: not screened)
-    # split letter -> (episodes, failed episodes per failure kind); runs evaluated before
-    # session 20 have none
+    # split letter -> (episodes, failed episodes per failure kind); the earliest runs have none
     failures: dict[str, tuple[int, dict[str, int]]] = field(default_factory=dict)
+    eval_max_examples: int = 0  # a seeded sample of this many episodes per test split (0: all)
 
 
 # ------------------------------------------------------------------------------ loading
@@ -142,7 +142,8 @@ def _read_run(path: Path) -> RunResult:
     return RunResult(name=doc["run"], group=group, seed=int(doc["seed"]), updates=int(doc["updates"]),
                      max_updates=int(doc["max_updates"]), best_dev=doc.get("best_dev_exact_match"),
                      batch_size=_batch_size(path.parent / "config.yaml"), rows=rows, lengths=lengths,
-                     failures=failures, **_metrics(path.parent / "metrics.jsonl"))
+                     failures=failures, eval_max_examples=int((doc.get("evaluation") or {}).get("max_examples") or 0),
+                     **_metrics(path.parent / "metrics.jsonl"))
 
 
 def _batch_size(config: Path) -> int | None:
@@ -353,8 +354,15 @@ def _table2(t: Tables) -> list[str]:
     groups = [g for g in t.groups if g.table == 2]
     if not groups:
         return []
+    samples = sorted({run.eval_max_examples for g in groups for run in t.members[g]})
+    if samples == [0]:
+        evaluated = "Row I: the whole target_lengths split."
+    else:
+        sizes = " or ".join("all" if n == 0 else f"{n:,}" for n in samples)
+        evaluated = (f"Row I: every run decodes a seeded sample of {sizes} episodes of target_lengths (and of "
+                     f"test), the same sample for every run of a size.")
     out = ["## Table 2: split I, exact match by target length", "",
-           "Columns: the longest target length trained on. Row I: the whole target_lengths split.", "",
+           f"Columns: the longest target length trained on. {evaluated}", "",
            *_head("target length", [g.label for g in groups])]
     for row in LENGTH_ROWS:
         cells = [t.cell2(g, row) for g in groups]

@@ -5,7 +5,8 @@ QoSProfile (`gscan_ros.nodes.common.qos_profile`), and the bag code records the 
 offered QoS in metadata.yaml and the MCAP channels (`gscan_ros.data.bag_schema`), so a
 replayed bag offers what the live stack offers. Nothing here imports rclpy: the data
 layer reads this table too. Names are relative, so a whole stack can live in a
-namespace; a bag stores them absolute (`Endpoint.bag_topic`).
+namespace; a bag stores them absolute (`Endpoint.bag_topic`). The one absolute name is
+`/diagnostics`, where ROS tools expect every node's health.
 """
 from __future__ import annotations
 
@@ -44,6 +45,15 @@ EVENTS = Qos(1000)
 # never hold up the policy.
 VIEWER = Qos(5, reliability=BEST_EFFORT)
 
+# The frame of every stamped message that shows the world (observation, world_image,
+# attention maps): the gSCAN grid, cell (row 0, col 0) at the origin, x along columns, y
+# along rows (so z points into the floor: the image convention), one unit per cell. The
+# grid has no metric size; a robot that publishes a transform to it says how big a cell is.
+GRID_FRAME = "gscan_grid"
+# The observation's sensor_msgs/Image encoding: 16 one-hot uint8 channels per cell.
+OBSERVATION_ENCODING = "8UC16"
+EARLIER_OBSERVATION_TYPE = "std_msgs/msg/UInt8MultiArray"
+
 # Reader depths: the newest sample only (the policy), or every sample while busy
 # (recorders, test probes).
 LATEST_DEPTH = 1
@@ -73,7 +83,9 @@ class Endpoint:
 COMMAND = Endpoint("command", TOPIC, "std_msgs/msg/String", EVENTS, recorded=True)
 COMMAND_GRAPH = Endpoint("command_graph", TOPIC, "std_msgs/msg/String", LATCHED, recorded=True)
 STATUS = Endpoint("status", TOPIC, "std_msgs/msg/String", EVENTS, recorded=True)
-OBSERVATION = Endpoint("observation", TOPIC, "std_msgs/msg/UInt8MultiArray", LATCHED, recorded=True)
+# The gSCAN encoding as a 16-channel image (msg_adapters/observation.py); bags written
+# before it was an image hold std_msgs/msg/UInt8MultiArray (`EARLIER_OBSERVATION_TYPE`).
+OBSERVATION = Endpoint("observation", TOPIC, "sensor_msgs/msg/Image", LATCHED, recorded=True)
 SITUATION = Endpoint("situation", TOPIC, "std_msgs/msg/String", LATCHED, recorded=True)
 WORLD_RESET = Endpoint("world_reset", TOPIC, "std_msgs/msg/Header", LATCHED, recorded=True)
 WORLD_IMAGE = Endpoint("world_image", TOPIC, "sensor_msgs/msg/Image", LATCHED, recorded=True)
@@ -86,10 +98,15 @@ EPISODE = Endpoint("episode", TOPIC, "std_msgs/msg/String", EVENTS, recorded=Tru
 ATTENTION = Endpoint("attention", TOPIC, "sensor_msgs/msg/Image", VIEWER)  # attention/<word>
 SIZE_ORDERING = Endpoint("attention/size_ordering", TOPIC, "sensor_msgs/msg/Image", VIEWER)
 RESET_WORLD = Endpoint("reset_world", SERVICE, "std_srvs/srv/Trigger", None)
+# Node health in the ROS convention: one DiagnosticStatus per node on the absolute
+# `/diagnostics`, the name diagnostic_updater publishes on and diagnostic_aggregator reads,
+# so every stack of a fleet reports on one topic (its status names are fully qualified).
+# Snapshots, at 1 Hz and on each change of level: a short queue loses nothing that the next one does not say.
+DIAGNOSTICS = Endpoint("/diagnostics", TOPIC, "diagnostic_msgs/msg/DiagnosticArray", Qos(10))
 
 ENDPOINTS: tuple[Endpoint, ...] = (
     COMMAND, COMMAND_GRAPH, STATUS, OBSERVATION, SITUATION, WORLD_RESET, WORLD_IMAGE, ACTION,
-    EPISODE_STATUS, EPISODE, ATTENTION, SIZE_ORDERING, RESET_WORLD,
+    EPISODE_STATUS, EPISODE, ATTENTION, SIZE_ORDERING, RESET_WORLD, DIAGNOSTICS,
 )
 RECORDED: tuple[Endpoint, ...] = tuple(e for e in ENDPOINTS if e.recorded)
 
@@ -109,7 +126,7 @@ def endpoint_of(topic: str) -> Endpoint | None:
     """The table's entry for a relative or absolute topic name (family members included)."""
     name = topic.lstrip("/")
     for endpoint in ENDPOINTS:
-        if endpoint.kind == TOPIC and endpoint.name == name:
+        if endpoint.kind == TOPIC and endpoint.name.lstrip("/") == name:
             return endpoint
     if name.startswith(f"{ATTENTION.name}/"):
         return ATTENTION

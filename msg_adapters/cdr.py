@@ -14,7 +14,7 @@ from msg_adapters.errors import MessageFormatError
 M = TypeVar("M")
 
 # Encapsulation ids whose body is plain (not parameter-list) CDR: CDR, XCDR2; even = big endian.
-_PLAIN_ENCAPSULATIONS = {0x0000: ">", 0x0001: "<", 0x0006: ">", 0x0007: "<"}
+PLAIN_ENCAPSULATIONS = {0x0000: ">", 0x0001: "<", 0x0006: ">", 0x0007: "<"}
 
 
 def msg_to_cdr(msg: object) -> bytes:
@@ -35,7 +35,7 @@ def cdr_to_string_bytes(data: bytes) -> bytes:
     """
     if len(data) < 8:
         raise MessageFormatError(f"serialized std_msgs/String needs at least 8 bytes, got {len(data)}")
-    endian = _PLAIN_ENCAPSULATIONS.get(int.from_bytes(data[:2], "big"))
+    endian = PLAIN_ENCAPSULATIONS.get(int.from_bytes(data[:2], "big"))
     if endian is None:
         raise MessageFormatError(f"unsupported CDR encapsulation {bytes(data[:2]).hex()} for std_msgs/String")
     (length,) = struct.unpack_from(f"{endian}I", data, 4)  # string length, terminator included

@@ -7,14 +7,13 @@ terminal state that says how it ended, `text` is for people (docs/ros.md "Episod
 from __future__ import annotations
 
 from actionlib_msgs.msg import GoalID, GoalStatus
-from builtin_interfaces.msg import Time
 
 from gscan_ros.data import episode_status as es
 from gscan_ros.errors import GscanError
 from msg_adapters.cdr import cdr_to_msg
 from msg_adapters.errors import MessageFormatError
+from msg_adapters.header import time_msg, time_ns
 
-NS_PER_S = 1_000_000_000
 MAX_TEXT = 1024  # a status is a short line; longer texts are cut
 
 _STATUS = {
@@ -28,9 +27,8 @@ _OUTCOME = {code: outcome for outcome, code in _STATUS.items()}
 
 
 def episode_status_to_msg(status: es.EpisodeStatus) -> GoalStatus:
-    stamp = Time(sec=status.start_ns // NS_PER_S, nanosec=status.start_ns % NS_PER_S)
-    return GoalStatus(goal_id=GoalID(stamp=stamp, id=status.episode_id), status=_STATUS[status.outcome],
-                      text=status.text[:MAX_TEXT])
+    return GoalStatus(goal_id=GoalID(stamp=time_msg(status.start_ns), id=status.episode_id),
+                      status=_STATUS[status.outcome], text=status.text[:MAX_TEXT])
 
 
 def msg_to_episode_status(msg: GoalStatus) -> es.EpisodeStatus:
@@ -40,9 +38,8 @@ def msg_to_episode_status(msg: GoalStatus) -> es.EpisodeStatus:
     if outcome is None:
         raise MessageFormatError(f"episode status {msg.status} is not one the policy sends "
                                  f"({', '.join(f'{c} {o}' for c, o in sorted(_OUTCOME.items()))})")
-    stamp = msg.goal_id.stamp
     try:
-        return es.EpisodeStatus(msg.goal_id.id, stamp.sec * NS_PER_S + stamp.nanosec, outcome, msg.text)
+        return es.EpisodeStatus(msg.goal_id.id, time_ns(msg.goal_id.stamp), outcome, msg.text)
     except GscanError as exc:
         raise MessageFormatError(str(exc)) from None
 

@@ -19,7 +19,8 @@ MONO8 = "mono8"
 DEFAULT_ATTENTION_UPSAMPLE = 10
 
 
-def _image_msg(pixels: np.ndarray, encoding: str, header: Header | None) -> Image:
+def image_msg(pixels: np.ndarray, encoding: str, header: Header | None) -> Image:
+    """sensor_msgs/Image of uint8[H, W] or uint8[H, W, channels] pixels, rows unpadded."""
     height, width = pixels.shape[:2]
     channels = 1 if pixels.ndim == 2 else pixels.shape[2]
     return Image(
@@ -33,8 +34,8 @@ def _image_msg(pixels: np.ndarray, encoding: str, header: Header | None) -> Imag
     )
 
 
-def _msg_pixels(msg: Image, encoding: str, channels: int) -> np.ndarray:
-    """uint8[H, W, channels] view of an image message, dropping any row padding."""
+def image_pixels(msg: Image, encoding: str, channels: int) -> np.ndarray:
+    """uint8[H, W, channels] view of an image message of `encoding`, dropping any row padding."""
     if msg.encoding != encoding:
         raise MessageFormatError(f"image encoding must be {encoding!r}, got {msg.encoding!r}")
     row_bytes = msg.width * channels
@@ -54,12 +55,12 @@ def image_to_msg(rgb: np.ndarray, *, header: Header | None = None) -> Image:
     pixels = np.asarray(rgb)
     if pixels.dtype != np.uint8 or pixels.ndim != 3 or pixels.shape[2] != 3:
         raise MessageFormatError(f"image must be a uint8[H, W, 3] RGB array, got {pixels.dtype}{list(pixels.shape)}")
-    return _image_msg(pixels, RGB8, header)
+    return image_msg(pixels, RGB8, header)
 
 
 def msg_to_image(msg: Image) -> np.ndarray:
     """uint8[H, W, 3] picture of an rgb8 image message (read-only view)."""
-    return _msg_pixels(msg, RGB8, 3)
+    return image_pixels(msg, RGB8, 3)
 
 
 def attention_to_msg(
@@ -77,13 +78,13 @@ def attention_to_msg(
     scaled = weights / peak if peak > 0 else weights
     pixels = np.rint(scaled * 255).astype(np.uint8)
     pixels = np.repeat(np.repeat(pixels, upsample, axis=0), upsample, axis=1)
-    return _image_msg(pixels, MONO8, header)
+    return image_msg(pixels, MONO8, header)
 
 
 def msg_to_attention(msg: Image, *, grid_size: int = GRID_SIZE) -> np.ndarray:
     """float32[grid, grid] in [0, 1] (max-normalized) from a mono8 attention image of a
     `grid_size` world (the 6x6 compositional grid by default)."""
-    pixels = _msg_pixels(msg, MONO8, 1)[:, :, 0]
+    pixels = image_pixels(msg, MONO8, 1)[:, :, 0]
     if msg.height != msg.width or msg.height % grid_size:
         raise MessageFormatError(
             f"attention image must be square with a side divisible by {grid_size}, got {msg.height}x{msg.width}"

@@ -9,16 +9,15 @@ from builtin_interfaces.msg import Time
 from std_msgs.msg import Header
 
 from msg_adapters.errors import MessageFormatError
-
-NS_PER_S = 1_000_000_000
+from msg_adapters.header import time_msg, time_ns
 
 
 def reset_to_msg(t_ns: int) -> Header:
-    return Header(stamp=Time(sec=t_ns // NS_PER_S, nanosec=t_ns % NS_PER_S))
+    return Header(stamp=time_msg(t_ns))
 
 
 def msg_to_reset(msg: Header) -> int:
     stamp = getattr(msg, "stamp", None)
     if not isinstance(stamp, Time):
         raise MessageFormatError(f"expected a std_msgs/Header with the reset time, got {type(msg).__name__}")
-    return stamp.sec * NS_PER_S + stamp.nanosec
+    return time_ns(stamp)

@@ -15,8 +15,9 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Iterator
 
+import numpy as np
 from mcap.reader import make_reader
-from std_msgs.msg import String
+from std_msgs.msg import MultiArrayDimension, String, UInt8MultiArray
 
 from gscan_ros.data import episode_status as es
 from gscan_ros.data.bag import EPISODE_PERIOD_NS, LIVE_SPLIT, STEP_NS, BagWriter, legacy_header
@@ -29,6 +30,7 @@ from msg_adapters import (
     action_to_msg,
     episode_status_to_msg,
     graph_to_msg,
+    grid_header,
     msg_to_episode_status,
     observation_to_msg,
     situation_to_msg,
@@ -82,6 +84,17 @@ def make_episodes(count: int, seed: int = 0, max_len: int = 20) -> list[Episode]
     return [make_episode(rng, i, max_len) for i in range(count)]
 
 
+def earlier_observation_msg(observation: np.ndarray) -> UInt8MultiArray:
+    """An observation as bags before the 8UC16 image held it: a UInt8MultiArray, dims row, col, channel."""
+    msg = UInt8MultiArray()
+    rows, cols, channels = observation.shape
+    msg.layout.dim = [MultiArrayDimension(label="row", size=rows, stride=rows * cols * channels),
+                      MultiArrayDimension(label="col", size=cols, stride=cols * channels),
+                      MultiArrayDimension(label="channel", size=channels, stride=channels)]
+    msg.data = np.ascontiguousarray(observation).tobytes()
+    return msg
+
+
 # ------------------------------------------------------------------ format-1 bags by hand
 @contextmanager
 def legacy_bag(bag_dir: Path) -> Iterator[BagWriter]:
@@ -109,7 +122,7 @@ def write_legacy_episode(writer: BagWriter, episode: Episode, episode_id: int, *
     states = episode.states()
     for t, token in enumerate(tokens if tokens is not None else [*(a.token for a in episode.actions), "<eos>"]):
         if observations and t < len(states):
-            writer.write_message("/observation", observation_to_msg(states[t]), t0 + (t + 1) * STEP_NS)
+            writer.write_message("/observation", earlier_observation_msg(states[t]), t0 + (t + 1) * STEP_NS)
         writer.write_message("/action", String(data=token), t0 + (t + 1) * STEP_NS + STEP_NS // 2)
 
 
@@ -143,7 +156,8 @@ class LiveStack:
         """The world's state: its situation (unless the recorder missed it), then its observation."""
         if situation:
             self.publish("situation", situation_to_msg(self.world.snapshot()))
-        self.publish("observation", observation_to_msg(self.world.encode()))
+        header = grid_header(self.now + self.step_ns)  # stamped as published
+        self.publish("observation", observation_to_msg(self.world.encode(), header=header))
 
     def command(self, typed: str, graph: CommandGraph | None = None) -> None:
         """A command typed as plain text, and the graph the parser made of it."""

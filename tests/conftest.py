@@ -49,6 +49,16 @@ def probe():
     p.close()
 
 
+@pytest.fixture
+def commander(probe):
+    """A GscanCommander in the probe's context (it spins itself)."""
+    from gscan_ros.nodes.commander import GscanCommander
+
+    c = GscanCommander(context=probe.context)
+    yield c
+    c.shutdown()
+
+
 @pytest.fixture(scope="module")
 def checkpoint(tmp_path_factory):
     """A tiny trained-shape checkpoint on disk, one per test module."""

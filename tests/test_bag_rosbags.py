@@ -35,7 +35,7 @@ def test_rosbags_accepts_metadata_and_lists_topics(recorded):
     assert topics == {
         "/episode": ("std_msgs/msg/String", len(episodes)),
         "/situation": ("std_msgs/msg/String", len(episodes)),
-        "/observation": ("std_msgs/msg/UInt8MultiArray", steps),
+        "/observation": ("sensor_msgs/msg/Image", steps),
         "/world_image": ("sensor_msgs/msg/Image", steps),
         "/command": ("std_msgs/msg/String", len(episodes)),
         "/episode_status": ("actionlib_msgs/msg/GoalStatus", 2 * len(episodes)),
@@ -60,11 +60,9 @@ def test_rosbags_decodes_the_recorded_values(recorded):
                 stamp = msg.goal_id.stamp.sec * 1_000_000_000 + msg.goal_id.stamp.nanosec
                 reports.append((msg.goal_id.id, msg.status, stamp, t))
             elif connection.topic == "/observation":
-                assert [(d.label, d.size, d.stride) for d in msg.layout.dim] == [
-                    ("row", 6, 576),
-                    ("col", 6, 96),
-                    ("channel", 16, 16),
-                ]
+                assert (msg.encoding, msg.height, msg.width, msg.step, msg.header.frame_id) == (
+                    "8UC16", 6, 6, 96, "gscan_grid")
+                assert msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec == t
                 observations.append(np.asarray(msg.data, dtype=np.uint8).reshape(6, 6, 16))
             elif connection.topic == "/action":
                 actions.append(msg.data)

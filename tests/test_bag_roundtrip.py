@@ -9,13 +9,16 @@ import pytest
 from mcap.reader import make_reader
 
 from gscan_ros import interface
-from gscan_ros.data.bag import BagEpisodeReader, iter_bag_episodes, read_bag_info, write_bag
+from gscan_ros.data.bag import BagEpisodeReader, BagWriter, iter_bag_episodes, read_bag_info, write_bag
+from gscan_ros.data.bag_cache import load_episode_cache
 from gscan_ros.data.bag_format import PROLOGUE_NS
 from gscan_ros.errors import DatasetFormatError
+from gscan_ros.interface import GRID_FRAME
 from gscan_ros.language import get_parser
 from gscan_ros.world.world import World
+from msg_adapters import cdr_to_observation, msg_to_cdr, time_ns
 
-from bag_support import legacy_bag, make_episodes, write_legacy_episode
+from bag_support import earlier_observation_msg, legacy_bag, make_episodes, write_legacy_episode
 
 MS = 1_000_000
 S = 1000 * MS
@@ -49,7 +52,8 @@ def _stream(bag: Path):
 
 
 def _state(observation) -> np.ndarray:
-    return np.frombuffer(bytes(observation.data), np.uint8).reshape([d.size for d in observation.layout.dim])
+    assert (observation.encoding, observation.step) == ("8UC16", 16 * observation.width)
+    return np.frombuffer(bytes(observation.data), np.uint8).reshape(observation.height, observation.width, 16)
 
 
 def _layout(episode, t0, graph=False):
@@ -84,7 +88,7 @@ def test_metadata_describes_the_bag(bag, episodes):
     assert {t: (i.msg_type, i.message_count) for t, i in info.topics.items()} == {
         "/episode": ("std_msgs/msg/String", len(episodes)),
         "/situation": ("std_msgs/msg/String", len(episodes)),
-        "/observation": ("std_msgs/msg/UInt8MultiArray", steps),
+        "/observation": ("sensor_msgs/msg/Image", steps),
         "/command": ("std_msgs/msg/String", len(episodes)),
         "/episode_status": ("actionlib_msgs/msg/GoalStatus", 2 * len(episodes)),
         "/action": ("std_msgs/msg/String", steps),
@@ -105,8 +109,7 @@ def test_mcap_profile_encodings_and_zstd_chunks(bag):
     assert {c.message_encoding for c in summary.channels.values()} == {"cdr"}
     assert {s.encoding for s in summary.schemas.values()} == {"ros2msg"}
     schemas = {s.name: s.data.decode() for s in summary.schemas.values()}
-    assert "MSG: std_msgs/MultiArrayLayout" in schemas["std_msgs/msg/UInt8MultiArray"]
-    assert "MSG: std_msgs/MultiArrayDimension" in schemas["std_msgs/msg/UInt8MultiArray"]
+    assert "MSG: std_msgs/Header" in schemas["sensor_msgs/msg/Image"]
     assert "MSG: actionlib_msgs/GoalID" in schemas["actionlib_msgs/msg/GoalStatus"]
     assert "MSG: builtin_interfaces/Time" in schemas["actionlib_msgs/msg/GoalStatus"]
     assert summary.chunk_indexes and {c.compression for c in summary.chunk_indexes} == {"zstd"}
@@ -156,6 +159,9 @@ def test_deterministic_times_and_step_order(bag, episodes):
     assert tokens == [a.token for a in first.actions] + ["<eos>"]
     assert np.array_equal(np.stack([_state(d) for (topic, _), d in zip(expected, msgs) if topic == "/observation"]),
                           states)
+    # Each state is stamped with the synthetic time the world reached it, in the grid frame.
+    assert all((time_ns(d.header.stamp), d.header.frame_id) == (t, GRID_FRAME)
+               for (topic, t), d in zip(expected, msgs) if topic == "/observation")
     assert json.loads(stream[len(expected)][3].data)["id"] == "1"
 
 
@@ -239,6 +245,33 @@ def test_a_format_1_bag_still_reads():
         assert np.array_equal(record.states, episode.states())
     assert reader.report.complete and reader.report.episodes_read == 4 and reader.report.outcomes == {}
     assert list(iter_bag_episodes(FIXTURE_V1, splits=["train"])) == [e for e in episodes if e.split == "train"]
+
+
+def _with_earlier_observations(bag: Path, out: Path, episodes) -> None:
+    """A copy of `bag` as format-2 writers before the 8UC16 image wrote it: UInt8MultiArray observations."""
+    with open(bag / f"{bag.name}_0.mcap", "rb") as f, BagWriter(out) as writer:
+        for schema, channel, message in make_reader(f).iter_messages():
+            msg_type, data = schema.name, message.data
+            if channel.topic == "/observation":
+                msg_type = interface.EARLIER_OBSERVATION_TYPE
+                data = msg_to_cdr(earlier_observation_msg(cdr_to_observation(data)))
+            channel_id = writer.channel_id(channel.topic) or writer.register_channel(channel.topic, msg_type)
+            writer.add_record(channel.topic, channel_id, data, message.log_time, message.publish_time, 0)
+        for episode in episodes:
+            writer.count_episode(episode.split)
+
+
+def test_a_format_2_bag_of_array_observations_still_reads(tmp_path, bag, episodes):
+    earlier = tmp_path / "earlier"
+    _with_earlier_observations(bag, earlier, episodes)
+    assert read_bag_info(earlier).topics["/observation"].msg_type == "std_msgs/msg/UInt8MultiArray"
+    reader = BagEpisodeReader(earlier, decode_states=True)
+    records = list(reader.records())
+    assert [r.episode for r in records] == episodes and reader.report.complete
+    for record, episode in zip(records, episodes):
+        assert np.array_equal(record.states, episode.states())
+    cache = load_episode_cache(earlier)
+    assert np.array_equal(cache.states(3), episodes[3].states())
 
 
 def test_format_1_aborted_episode_reads_as_preempted(tmp_path, episodes):

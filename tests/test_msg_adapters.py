@@ -8,12 +8,16 @@ from sensor_msgs.msg import Image
 from std_msgs.msg import MultiArrayDimension, String, UInt8MultiArray
 
 from gscan_ros.errors import GscanError, InvalidActionError
+from gscan_ros.interface import EARLIER_OBSERVATION_TYPE, GRID_FRAME, OBSERVATION
 from gscan_ros.world.types import Action
 from msg_adapters import (
     MessageFormatError,
+    ObservationDecoder,
     action_to_msg,
     attention_to_msg,
     cdr_to_msg,
+    cdr_to_observation,
+    grid_header,
     image_to_msg,
     msg_to_action,
     msg_to_attention,
@@ -21,26 +25,67 @@ from msg_adapters import (
     msg_to_image,
     msg_to_observation,
     observation_to_msg,
+    time_ns,
 )
+
+from bag_support import earlier_observation_msg
 
 observations = arrays(np.uint8, (6, 6, 16), elements=st.integers(0, 1))
 
 
 @settings(max_examples=30)
-@given(observations)
-def test_observation_round_trips_through_cdr(obs):
-    msg = cdr_to_msg(msg_to_cdr(observation_to_msg(obs)), UInt8MultiArray)
+@given(observations, st.integers(0, 2**62))
+def test_observation_round_trips_through_cdr(obs, stamp_ns):
+    msg = cdr_to_msg(msg_to_cdr(observation_to_msg(obs, header=grid_header(stamp_ns))), Image)
     assert np.array_equal(msg_to_observation(msg), obs)
+    assert (time_ns(msg.header.stamp), msg.header.frame_id) == (stamp_ns, GRID_FRAME)
 
 
-def test_observation_layout_is_row_col_channel():
+def test_observation_is_an_8uc16_image_with_one_pixel_per_cell():
+    obs = np.zeros((6, 6, 16), np.uint8)
+    obs[2, 5, 11] = 1  # the agent in row 2, column 5
+    msg = observation_to_msg(obs)
+    assert (msg.encoding, msg.height, msg.width, msg.step, len(msg.data)) == ("8UC16", 6, 6, 96, 576)
+    assert msg.data[2 * msg.step + 5 * 16 + 11] == 1
+
+
+def _observation_image(**fields):
     msg = observation_to_msg(np.zeros((6, 6, 16), np.uint8))
-    assert [(d.label, d.size, d.stride) for d in msg.layout.dim] == [
-        ("row", 6, 576),
-        ("col", 6, 96),
-        ("channel", 16, 16),
-    ]
-    assert msg.layout.data_offset == 0
+    for name, value in fields.items():
+        setattr(msg, name, value)
+    return msg
+
+
+@pytest.mark.parametrize(
+    "fields, problem",
+    [
+        ({"encoding": "16UC1"}, "encoding must be '8UC16'"),
+        ({"encoding": "mono8"}, "encoding"),
+        ({"height": 5}, r"sizes \[5, 6, 16\]"),
+        ({"height": 3, "width": 3, "step": 48}, "square grid of 4 to 16"),
+        ({"step": 100}, "step must be 16 \\* width = 96"),
+        ({"step": 48}, "step must be 16"),
+        ({"data": bytes(500)}, "500 bytes"),
+    ],
+)
+def test_observation_image_refusals(fields, problem):
+    with pytest.raises(MessageFormatError, match=problem):
+        msg_to_observation(_observation_image(**fields))
+
+
+def test_observation_refuses_other_messages_and_types():
+    with pytest.raises(MessageFormatError, match="sensor_msgs/Image"):
+        msg_to_observation(String(data="x"))
+    with pytest.raises(MessageFormatError, match="not a std_msgs/msg/String"):
+        cdr_to_observation(msg_to_cdr(String(data="x")), "std_msgs/msg/String")
+
+
+def test_an_earlier_bag_observation_still_reads():
+    obs = np.zeros((6, 6, 16), np.uint8)
+    obs[1, 2, 3] = 1
+    earlier = earlier_observation_msg(obs)
+    np.testing.assert_array_equal(msg_to_observation(earlier), obs)
+    np.testing.assert_array_equal(cdr_to_observation(msg_to_cdr(earlier), EARLIER_OBSERVATION_TYPE), obs)
 
 
 def _with_dims(dims, data_len=576):
@@ -60,9 +105,26 @@ def _with_dims(dims, data_len=576):
         ([("row", 6, 576), ("col", 6, 96), ("channel", 16, 16)], 500, "bytes"),
     ],
 )
-def test_observation_rejects_wrong_layout(dims, data_len, problem):
+def test_earlier_observation_rejects_wrong_layout(dims, data_len, problem):
     with pytest.raises(MessageFormatError, match=problem):
         msg_to_observation(_with_dims(dims, data_len))
+
+
+@pytest.mark.parametrize("msg_type", [OBSERVATION.type, EARLIER_OBSERVATION_TYPE])
+def test_the_decoder_of_a_bag_channel_reads_every_stamp_and_layout(msg_type):
+    """The fast path keys on the bytes outside the stamp and the data: each message still decodes to its own data."""
+    decode = ObservationDecoder(msg_type)
+    rng = np.random.default_rng(0)
+    for t in range(20):
+        grid = (6, 12)[t % 2]
+        obs = rng.integers(0, 2, (grid, grid, 16), dtype=np.uint8)
+        msg = observation_to_msg(obs, header=grid_header(10**18 + t * 12345)) if msg_type == OBSERVATION.type \
+            else earlier_observation_msg(obs)
+        np.testing.assert_array_equal(decode(msg_to_cdr(msg)), obs)
+    assert len(decode._layouts) == 2  # one per grid size: every later message took the fast path
+    bad = _observation_image(encoding="mono8") if msg_type == OBSERVATION.type else _with_dims([("row", 6, 576)])
+    with pytest.raises(MessageFormatError):
+        decode(msg_to_cdr(bad))
 
 
 def test_observation_rejects_non_uint8_arrays():
@@ -211,7 +273,7 @@ def test_situation_round_trips_and_bad_json_is_a_format_error():
 
 
 def test_typed_cdr_decoders_of_the_bag_code():
-    from msg_adapters import cdr_to_action, cdr_to_observation, cdr_to_text, text_to_msg
+    from msg_adapters import cdr_to_action, cdr_to_text, text_to_msg
 
     observation = np.zeros((6, 6, 16), np.uint8)
     observation[1, 2, 3] = 1

@@ -266,3 +266,38 @@ def test_every_node_offers_and_asks_the_qos_of_the_interface_table(checkpoint, t
     # `episode` records are written into bags by the bag writers, not published).
     assert seen == {e.name for e in interface.ENDPOINTS} - {interface.ATTENTION.name, interface.SIZE_ORDERING.name,
                                                               interface.EPISODE.name}
+
+
+def test_every_node_reports_its_health_on_diagnostics(checkpoint, tmp_path):
+    """One DiagnosticStatus per node on the absolute `/diagnostics`, named by its fully qualified name."""
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+
+    from gscan_ros import interface
+    from gscan_ros.nodes.common import qos_profile
+    from gscan_ros.nodes.episode_recorder_node import EpisodeRecorderNode
+    from gscan_ros.nodes.parser_node import ParserNode
+    from gscan_ros.nodes.policy_node import PolicyNode
+    from gscan_ros.nodes.world_simulator_node import WorldSimulatorNode
+
+    probe = Probe(fresh_domain_id())
+    try:
+        arrays = probe.record("/diagnostics", DiagnosticArray, qos_profile(interface.DIAGNOSTICS, depth=100))
+        for node in (
+            WorldSimulatorNode(context=probe.context, parameter_overrides=parameters(publish_images=False)),
+            ParserNode(context=probe.context, parameter_overrides=parameters(checkpoint=str(checkpoint))),
+            PolicyNode(context=probe.context, parameter_overrides=parameters(checkpoint=str(checkpoint))),
+            EpisodeRecorderNode(context=probe.context, parameter_overrides=parameters(bag_dir=str(tmp_path / "bag"))),
+        ):
+            probe.executor.add_node(node)
+        names = {"/world_simulator_node", "/parser_node", "/policy_node", "/episode_recorder_node"}
+        statuses = {}
+
+        def all_reported():
+            statuses.update((s.name, s) for a in arrays for s in a.status)
+            return names <= statuses.keys()
+
+        probe.spin_until(all_reported, what="a DiagnosticStatus of every node")
+        assert all(statuses[n].level == DiagnosticStatus.OK and statuses[n].hardware_id == "gscan_ros" for n in names)
+        assert {v.key for v in statuses["/policy_node"].values} == {"rejected inputs", "internal errors", "episodes"}
+    finally:
+        probe.close()

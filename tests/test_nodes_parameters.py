@@ -1,24 +1,16 @@
 """Parameters changed on running nodes through their parameter services (`ros2 param set`) take
 effect; bad values are refused with a reason and change nothing."""
-import pytest
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
 
 from gscan_ros.data.bag import iter_bag_episodes, read_bag_info
-from gscan_ros.nodes.commander import GscanCommander, Outcome
+from gscan_ros.nodes.commander import Outcome
 from gscan_ros.world.types import Action
 
 from ros_helpers import in_process_stack
 
 TIMEOUT = 30.0
 COMMAND = "walk to a red circle"
-
-
-@pytest.fixture
-def commander(probe):
-    c = GscanCommander(context=probe.context)
-    yield c
-    c.shutdown()
 
 
 def set_parameters(commander, node_name, **values):

@@ -4,14 +4,13 @@ import random
 import re
 import time
 
-import pytest
 import yaml
 from actionlib_msgs.msg import GoalStatus
 from std_msgs.msg import String
 
 from gscan_ros.data import episode_status as es
 from gscan_ros.data.bag import BagEpisodeReader, BagWriter, read_bag_info
-from gscan_ros.nodes.commander import GscanCommander, Outcome
+from gscan_ros.nodes.commander import Outcome
 from gscan_ros.nodes.common import EVENT_QOS
 from gscan_ros.world.types import Action
 from msg_adapters import msg_to_episode_status
@@ -21,13 +20,6 @@ from ros_helpers import in_process_stack, parameters
 WALK, TURN, EOS = Action.WALK, Action.TURN_LEFT, Action.EOS
 TIMEOUT = 30.0
 COMMAND = "walk to a red circle"
-
-
-@pytest.fixture
-def commander(probe):
-    c = GscanCommander(context=probe.context)
-    yield c
-    c.shutdown()
 
 
 def _topic_metadata(bag_dir):
@@ -92,14 +84,27 @@ def test_a_preempted_episode_keeps_exactly_its_own_actions(probe, commander, che
         time.sleep(rng.uniform(0.001, 0.006))
         commands.publish(String(data="walk to a green circle"))
     # The policy keeps only the newest graph: a B that C overtook is never started. Each
-    # round's A is preempted, and so is each C by the next round's A (the last by this one).
+    # round's A is preempted, and so is each C by the next round's A (the last by the
+    # commander's command, sent once the last C runs: it comes through another writer).
+    last = time.time_ns()
+
+    def reported(text, outcome=es.ACTIVE):
+        return any((r := msg_to_episode_status(m)).outcome == outcome and r.text == text and r.start_ns > last
+                   for m in reports)
+
+    commander.spin_until(lambda: reported("walk to a green circle"), TIMEOUT, "the last command followed")
     stack.policy_node.set_parameters(parameters(max_steps=2))
-    assert commander.run_episode("walk to a circle", timeout=TIMEOUT).outcome is Outcome.MAX_STEPS
+    final = commander.run_episode("walk to a circle", timeout=TIMEOUT)
+    assert final.outcome is Outcome.MAX_STEPS, [(r.episode_id, r.outcome, r.text) for r in map(
+        msg_to_episode_status, reports)][-6:]
 
     def ended():
         return sum(msg_to_episode_status(r).ended for r in reports)
 
-    commander.spin_until(lambda: ended() >= 21 and stack.recorder.episodes == ended(), TIMEOUT, "every end recorded")
+    deadline = time.monotonic() + TIMEOUT
+    while time.monotonic() < deadline and not (ended() >= 21 and stack.recorder.episodes == ended()):
+        commander.spin_for(0.05)
+    assert ended() >= 21 and stack.recorder.episodes == ended(), (ended(), stack.recorder.episodes)
     bag = close(stack, probe)
     told = {}
     for msg in reports:

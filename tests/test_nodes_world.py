@@ -3,17 +3,21 @@ import json
 
 import numpy as np
 import pytest
-from std_msgs.msg import Header, String, UInt8MultiArray
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from sensor_msgs.msg import Image
+from std_msgs.msg import Header, String
 from std_srvs.srv import Trigger
 
+from gscan_ros import interface
 from gscan_ros.data.bag import write_bag
 from gscan_ros.data.sources import sample_episode
 from gscan_ros.errors import DatasetFormatError
-from gscan_ros.nodes.common import EVENT_QOS, LATCHED_LOG_QOS
+from gscan_ros.interface import GRID_FRAME
+from gscan_ros.nodes.common import EVENT_QOS, LATCHED_LOG_QOS, qos_profile
 from gscan_ros.nodes.world_simulator_node import WorldSimulatorNode
 from gscan_ros.world import World
 from gscan_ros.world.types import Action
-from msg_adapters import msg_to_observation, msg_to_reset
+from msg_adapters import msg_to_observation, msg_to_reset, time_ns
 
 from ros_helpers import parameters, source_info
 
@@ -21,7 +25,7 @@ from ros_helpers import parameters, source_info
 @pytest.fixture
 def world(probe):
     """(node, observations, status) with the node serving random seed 3, no images."""
-    observations = probe.record("observation", UInt8MultiArray, LATCHED_LOG_QOS)
+    observations = probe.record("observation", Image, LATCHED_LOG_QOS)
     status = probe.record("status", String, EVENT_QOS)
     node = WorldSimulatorNode(context=probe.context, parameter_overrides=parameters(seed=3, publish_images=False))
     probe.executor.add_node(node)
@@ -142,7 +146,7 @@ def call_reset(probe):
 
 
 def test_reset_to_an_unsupported_grid_size_fails_cleanly_and_the_node_keeps_serving(probe, tmp_path):
-    observations = probe.record("observation", UInt8MultiArray, LATCHED_LOG_QOS)
+    observations = probe.record("observation", Image, LATCHED_LOG_QOS)
     status = probe.record("status", String, EVENT_QOS)
     dataset = dataset_with_a_bad_second_example(tmp_path, grid_size=100_000)
     node = WorldSimulatorNode(context=probe.context,
@@ -199,7 +203,7 @@ def test_a_late_subscriber_to_a_latched_topic_gets_only_the_current_world(probe,
     def keep(topic):  # this test's world only (a participant of an earlier test may linger in the domain)
         return lambda msg, info: late[topic].append(msg) if info["source_timestamp"] >= probe.created_ns else None
 
-    for topic, msg_type in (("situation", String), ("observation", UInt8MultiArray), ("world_reset", Header)):
+    for topic, msg_type in (("situation", String), ("observation", Image), ("world_reset", Header)):
         probe.node.create_subscription(msg_type, topic, keep(topic), echo_qos)
     probe.spin_until(lambda: all(late.values()), what="the latched samples")
     for _ in range(25):  # anything else the writers still hold would arrive now
@@ -207,3 +211,31 @@ def test_a_late_subscriber_to_a_latched_topic_gets_only_the_current_world(probe,
     assert [len(v) for v in late.values()] == [1, 1, 1]
     assert json.loads(late["situation"][0].data) == current.to_json()
     assert np.array_equal(msg_to_observation(late["observation"][0]), World(current).encode())
+    # Stamped with the time the world reached that state (here: the reset), in the grid frame.
+    header = late["observation"][0].header
+    assert (time_ns(header.stamp), header.frame_id) == (node.state_ns, GRID_FRAME)
+    assert node.state_ns == msg_to_reset(late["world_reset"][0])
+
+
+def test_diagnostics_carry_the_level_of_the_last_status_line(probe, world):
+    """OK while serving, WARN after a rejected input, ERROR after an internal error (docs/ros.md "Health")."""
+    node, _, _ = world
+    diagnostics = probe.record("/diagnostics", DiagnosticArray, qos_profile(interface.DIAGNOSTICS, depth=100))
+
+    def newest(level):
+        def arrived():
+            mine = [s for a in diagnostics for s in a.status if s.name == node.get_fully_qualified_name()]
+            return mine and mine[-1].level == level and mine[-1]
+        return arrived
+
+    probe.spin_until(newest(DiagnosticStatus.OK), what="an OK status at 1 Hz")
+    node.on_action(String(data="fly"), source_info())
+    probe.spin_until(newest(DiagnosticStatus.WARN), what="WARN after a rejected action")
+    status = newest(DiagnosticStatus.WARN)()
+    assert "rejected action 'fly'" in status.message and status.hardware_id == "gscan_ros"
+    assert {v.key: v.value for v in status.values}["rejected inputs"] == "1"
+    assert call_reset(probe).success
+    probe.spin_until(newest(DiagnosticStatus.OK), what="OK after the next event")
+    node._source.next = lambda: 1 / 0
+    assert not call_reset(probe).success
+    probe.spin_until(newest(DiagnosticStatus.ERROR), what="ERROR after an internal error")

@@ -14,7 +14,7 @@ import yaml
 REPO = Path(__file__).resolve().parents[1]
 # Keys rosdep resolves from rosdistro itself, as checked in ros/rosdistro (2026-08-22):
 # the ROS 2 Jazzy packages of jazzy/distribution.yaml, which come from ROS, not from pip...
-ROS_PACKAGES = {"actionlib_msgs", "ament_index_python", "builtin_interfaces", "launch", "launch_ros",
+ROS_PACKAGES = {"actionlib_msgs", "ament_index_python", "builtin_interfaces", "diagnostic_msgs", "launch", "launch_ros",
                 "rcl_interfaces", "rclpy", "sensor_msgs", "std_msgs", "std_srvs"}
 # ...and the system keys of rosdep/python.yaml. python3-nltk, -zstandard, -lz4, wordnet-base
 # and any key for mcap are not there (nor in rosdep/base.yaml): rosdep/gscan_ros.yaml has them.

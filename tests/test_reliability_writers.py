@@ -242,7 +242,7 @@ def test_a_torn_last_metrics_line_does_not_block_the_run(data, tmp_path, capsys,
     assert code == 0, err
     events = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
     assert [e["event"] for e in events].count("start") == 2 and events[-1]["event"] == "end"
-    assert sum("torn last line" in r.getMessage() for r in caplog.records) == 1
+    assert sum("torn" in r.getMessage() for r in caplog.records) == 1  # reported once (the resume drops it)
 
 
 def test_readers_of_metrics_skip_a_torn_line_with_one_warning(tmp_path, caplog):

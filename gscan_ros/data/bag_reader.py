@@ -17,6 +17,7 @@ from typing import Iterable, Iterator
 
 import numpy as np
 
+from gscan_ros import interface
 from gscan_ros.data import episode_status as es
 from gscan_ros.data.bag_format import LEGACY_EPISODE_TOPICS, GraphCache, episode_from_header
 from gscan_ros.data.bag_metadata import LEGACY_FORMAT_VERSION, read_bag_info
@@ -36,7 +37,7 @@ from gscan_ros.data.episode_assembly import (
 )
 from gscan_ros.errors import DatasetFormatError, GscanError
 from gscan_ros.world.types import Action
-from msg_adapters import cdr_to_action, cdr_to_episode_status, cdr_to_observation, cdr_to_text
+from msg_adapters import ObservationDecoder, cdr_to_action, cdr_to_episode_status, cdr_to_text
 
 # Losses are logged under the bag API's name (docs/bags.md), whichever module reads.
 log = logging.getLogger("gscan_ros.data.bag")
@@ -51,30 +52,6 @@ class RecordedEpisode:
     states: np.ndarray | None  # uint8[T+1, G, G, 16]
     graph_json: str | None
     outcome: str = es.COMPLETE
-
-
-class _ObservationDecoder:
-    """CDR bytes -> uint8[6, 6, 16], decoding the layout once per distinct CDR prefix.
-
-    Every observation of a bag has the same layout, so its CDR bytes differ only in the
-    trailing data block. The first message with a new prefix is decoded in full with
-    msg_adapters and checked (cdr_to_observation); later ones with a byte-identical prefix
-    (same layout, same data length) are the same message up to that tail, so the tail
-    is their data.
-    """
-
-    def __init__(self) -> None:
-        self._prefixes: dict[bytes, tuple[int, tuple[int, ...]]] = {}
-
-    def __call__(self, data: bytes) -> np.ndarray:
-        for prefix, (size, shape) in self._prefixes.items():
-            if len(data) == len(prefix) + size and data.startswith(prefix):
-                return np.frombuffer(data, np.uint8, count=size, offset=len(prefix)).reshape(shape)
-        observation = cdr_to_observation(data)
-        size = observation.size
-        if data[len(data) - size :] == observation.tobytes():
-            self._prefixes[bytes(data[: len(data) - size])] = (size, observation.shape)
-        return observation
 
 
 @dataclass
@@ -120,6 +97,7 @@ class BagEpisodeReader(Iterator[Episode]):
             expected_episodes=self.info.episodes,
         )
         self._episodes = (r.episode for r in self.records())
+        self._decode_observation: ObservationDecoder | None = None  # for the type of the bag's `/observation`
 
     def __next__(self) -> Episode:
         return next(self._episodes)
@@ -145,7 +123,6 @@ class BagEpisodeReader(Iterator[Episode]):
                 action = action_cache[bytes(data)] = cdr_to_action(data)
             return action
 
-        decode_observation = _ObservationDecoder()
         graphs = GraphCache()
         assembler = EpisodeAssembler(decode_action=decode_action, decode_status=cdr_to_episode_status,
                                      decode_text=cdr_to_text, keep_observations=self.decode_states,
@@ -169,7 +146,7 @@ class BagEpisodeReader(Iterator[Episode]):
                 if not self.include_incomplete:
                     continue
             if self.splits is None or done.header["split"] in self.splits:
-                yield self._assembled(path, done, graphs, decode_observation)
+                yield self._assembled(path, done, graphs)
         assembler.finish()
         for _ in range(assembler.rejected):
             self.report.count_outcome(es.REJECTED)
@@ -177,21 +154,22 @@ class BagEpisodeReader(Iterator[Episode]):
         self.report.discarded_messages += assembler.dropped_messages
         self.report.drop_reasons = dict(assembler.dropped)
 
-    def _assembled(self, path: Path, done: AssembledEpisode, graphs: GraphCache, decode) -> RecordedEpisode:
+    def _assembled(self, path: Path, done: AssembledEpisode, graphs: GraphCache) -> RecordedEpisode:
         where = f"{path}: episode {done.header['episode_id']}"
         episode = episode_from_header(done.header, done.actions, str(path))
         graphs.attach(episode, done.graph_json, where)
         states = None
         if self.decode_states:
             # A recorder that lagged may lack some states: they are the world's, so replay them.
-            states = np.stack([decode(d) for d in done.observations] if done.observations else episode.states())
+            states = np.stack([self._decode_observation(d) for d in done.observations] if done.observations
+                              else episode.states())
         return RecordedEpisode(episode, done.header, states, done.graph_json, done.outcome)
 
     def _live_messages(self) -> Iterator[Message | object]:
         """The stack's messages (topics relative to its namespace), and LOSS where data was lost."""
         relative: dict[str, str | None] = {}
         order = 0
-        for item in self._scan():
+        for scan, item in self._scan():
             if item is LOSS:
                 yield STREAM_LOSS
                 continue
@@ -199,6 +177,8 @@ class BagEpisodeReader(Iterator[Episode]):
             name = relative.get(channel.topic, "?")
             if name == "?":
                 name = relative[channel.topic] = stack_topic(channel.topic, relative)
+                if name == interface.OBSERVATION.name:
+                    self._observation_type(scan, channel)
             self.report.messages_read += 1
             if name is not None:
                 order += 1
@@ -207,7 +187,6 @@ class BagEpisodeReader(Iterator[Episode]):
     # -- format 1: `/command` headers ------------------------------------------------------
     def _legacy_records(self) -> Iterator[RecordedEpisode]:
         action_cache: dict[bytes, Action] = {}  # CDR bytes of the 7 action tokens
-        decode_observation = _ObservationDecoder()
         graphs = GraphCache()
         current: _OpenEpisode | None = None
         for item in self._messages():
@@ -228,7 +207,7 @@ class BagEpisodeReader(Iterator[Episode]):
             if topic == OBSERVATION.name:
                 current.observation_count += 1
                 if self.decode_states and current.selected:
-                    current.observations.append(decode_observation(data))
+                    current.observations.append(self._decode_observation(data))
             elif topic == ACTION.name:
                 action = action_cache.get(data)
                 if action is None:
@@ -300,16 +279,35 @@ class BagEpisodeReader(Iterator[Episode]):
         return RecordedEpisode(episode, done.header, states, done.graph_json, done.outcome)
 
     # -- MCAP ------------------------------------------------------------------------------
-    def _scan(self) -> Iterator[tuple | object]:
-        """McapScan's items over every storage file, and `LOSS` where data was lost."""
+    def _scan(self) -> Iterator[tuple[McapScan, tuple | object]]:
+        """(the file's McapScan, one of its items) over every storage file; the item is `LOSS` where data was lost."""
         for path in self.info.mcap_paths:
-            yield from McapScan(path, self.report, self.info).items()
+            scan = McapScan(path, self.report, self.info)
+            for item in scan.items():
+                yield scan, item
 
     def _messages(self) -> Iterator[tuple[Path, str, bytes] | object]:
         """(path, topic, CDR data) per readable message, and `LOSS` where data was lost."""
-        for path in self.info.mcap_paths:
-            for item in McapScan(path, self.report, self.info).items():
-                yield item if item is LOSS else (path, item[0].topic, item[4])
+        channels: set[tuple[Path, int]] = set()
+        for scan, item in self._scan():
+            if item is LOSS:
+                yield item
+                continue
+            channel = item[0]
+            if (scan.path, channel.id) not in channels:
+                channels.add((scan.path, channel.id))
+                if channel.topic == OBSERVATION.name:
+                    self._observation_type(scan, channel)
+            yield scan.path, channel.topic, item[4]
+
+    def _observation_type(self, scan: McapScan, channel) -> None:
+        """Decode observations as `channel`'s type: an Image, or an earlier bag's UInt8MultiArray."""
+        msg_type = scan.msg_type(channel) or OBSERVATION.msg_type
+        if self._decode_observation is None:
+            self._decode_observation = ObservationDecoder(msg_type)
+        elif self._decode_observation.msg_type != msg_type:
+            raise DatasetFormatError(f"{self.info.path}: {channel.topic} carries both "
+                                     f"{self._decode_observation.msg_type} and {msg_type}")
 
 
 def iter_bag_episodes(

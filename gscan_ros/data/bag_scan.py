@@ -301,6 +301,14 @@ class McapScan:
             return LOSS
         return (channel, *message[1:])
 
+    def msg_type(self, channel: Channel) -> str | None:
+        """"pkg/msg/Type" of a channel's messages: its schema's name, else metadata.yaml's type of its topic."""
+        schema = self.schemas.get(channel.schema_id)
+        if schema is not None:
+            return schema.name
+        topic = self._info.topics.get(channel.topic) if self._info is not None else None
+        return topic.msg_type if topic is not None else None
+
     def _fallback_channel(self, channel_id: int) -> Channel | None:
         """A gscan_ros writer registers one channel per metadata.yaml topic, in that order."""
         if self._info is None or not self.library.startswith("gscan_ros"):

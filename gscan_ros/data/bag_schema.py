@@ -64,6 +64,10 @@ class TopicSpec:
     name: str  # absolute topic name as stored in the bag
     msg_type: str  # "pkg/msg/Type"
     offered: Qos  # what the live publisher offers (gscan_ros.interface)
+    earlier_types: tuple[str, ...] = ()  # what bags written by earlier versions hold instead (still read)
+
+    def carries(self, msg_type: str) -> bool:
+        return msg_type == self.msg_type or msg_type in self.earlier_types
 
     @property
     def latched(self) -> bool:
@@ -74,8 +78,11 @@ class TopicSpec:
         return rosbag2_qos(self.offered)
 
 
+_EARLIER_TYPES = {interface.OBSERVATION.name: (interface.EARLIER_OBSERVATION_TYPE,)}
+
+
 def _spec(endpoint: Endpoint) -> TopicSpec:
-    return TopicSpec(endpoint.bag_topic, endpoint.type, endpoint.qos)
+    return TopicSpec(endpoint.bag_topic, endpoint.type, endpoint.qos, _EARLIER_TYPES.get(endpoint.name, ()))
 
 
 COMMAND = _spec(interface.COMMAND)

@@ -57,6 +57,7 @@ from msg_adapters import (
     action_to_msg,
     episode_status_to_msg,
     graph_to_msg,
+    grid_header,
     image_to_msg,
     msg_to_cdr,
     observation_to_msg,
@@ -214,9 +215,10 @@ class BagWriter:
         return self._end_ns
 
     def _write_state(self, state, world, t_ns: int) -> None:
-        self._write(OBSERVATION.name, observation_to_msg(state), t_ns)
+        """The world's state at `t_ns`, stamped with that time as the live world stamps it."""
+        self._write(OBSERVATION.name, observation_to_msg(state, header=grid_header(t_ns)), t_ns)
         if world is not None:
-            self._write(WORLD_IMAGE.name, image_to_msg(world.render()), t_ns)
+            self._write(WORLD_IMAGE.name, image_to_msg(world.render(), header=grid_header(t_ns)), t_ns)
 
     def count_episode(self, split: str | None) -> None:
         """One more episode written (of `split`, when known): numbering and metadata counts."""
@@ -283,7 +285,7 @@ class BagWriter:
         """Add `topic`'s channel (and its type's schema); `schema` = (encoding, text) and
         `metadata` keep a copied channel's own (`bag repair`), else ours are generated."""
         spec = TOPICS.get(topic)
-        if spec is not None and spec.msg_type != msg_type:
+        if spec is not None and not spec.carries(msg_type):
             raise TypeError(f"topic {topic} carries {spec.msg_type}, got a {msg_type}")
         schema_id = self._schemas.get(msg_type)
         if schema_id is None:

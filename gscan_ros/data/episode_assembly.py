@@ -41,7 +41,8 @@ MAX_PENDING_RECORDS = 1024  # `/episode` records waiting for their episode (a bo
 LOSS = object()  # a marker in the message stream: data was lost here
 # The stack's topics (relative names) that make episodes; anything else in a bag is context.
 STACK_TOPICS = frozenset(
-    e.name for e in interface.ENDPOINTS if e.kind == interface.TOPIC and e is not interface.ATTENTION
+    e.name for e in interface.ENDPOINTS
+    if e.kind == interface.TOPIC and e not in (interface.ATTENTION, interface.DIAGNOSTICS)
 )
 
 

@@ -1,4 +1,4 @@
-"""What the gscan_ros nodes share: topic names and QoS from the interface table, the status channel, `run()`.
+"""What the gscan_ros nodes share: topic names and QoS from the interface table, status and diagnostics, `run()`.
 
 Topic names are relative (docs/ros.md), so a whole stack can be pushed
 into a namespace with `--ros-args -r __ns:=/robot1`. Names, types and offered QoS come
@@ -16,12 +16,13 @@ from collections.abc import Callable
 from typing import TypeVar
 
 import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from std_msgs.msg import String
+from std_msgs.msg import Header, String
 
 from gscan_ros import interface
 from gscan_ros.errors import GscanError
@@ -39,6 +40,7 @@ EPISODE_STATUS = interface.EPISODE_STATUS.name  # actionlib_msgs/GoalStatus: an 
 ATTENTION_PREFIX = interface.ATTENTION.name
 SIZE_ORDERING = interface.SIZE_ORDERING.name  # (-att_small + att_big) / 2, commands with a size word
 RESET_WORLD = interface.RESET_WORLD.name
+DIAGNOSTICS = interface.DIAGNOSTICS.name  # absolute: every node's DiagnosticStatus
 
 _RELIABILITY = {interface.RELIABLE: ReliabilityPolicy.RELIABLE, interface.BEST_EFFORT: ReliabilityPolicy.BEST_EFFORT}
 _DURABILITY = {
@@ -74,6 +76,8 @@ VIEWER_LOG_QOS = qos_profile(interface.VIEWER, depth=interface.LOG_DEPTH)
 ECHO_CHARS = 60  # how much of a rejected input a status line quotes
 STATUS_CHARS = 300  # longest status line
 WARNING_INTERVAL_S = 1.0  # at most one rejection warning per interval in the log
+DIAGNOSTICS_PERIOD_S = 1.0  # the diagnostic_updater rate
+HARDWARE_ID = "gscan_ros"  # a DiagnosticStatus's hardware_id: these nodes drive no device
 
 
 def describe(text: str, *, read_only: bool = False, int_range: tuple[int, int] | None = None,
@@ -115,36 +119,78 @@ def quote(value: object) -> str:
 
 
 class StatusReporter:
-    """Publishes one human-readable line per event or rejected input on `status`, and logs it.
+    """A node's health: one human-readable line per event on `status`, and its
+    DiagnosticStatus on `/diagnostics` (docs/ros.md "Health").
 
     Lines are prefixed with the node name and capped at STATUS_CHARS, so an error that
-    quotes a 10 kB input still yields one short line. Every rejection is published, but
-    at most one per WARNING_INTERVAL_S is logged as a warning (the others at debug
-    level, counted in the next warning): rclpy's logger is slow per call (docs/results.md),
-    and a flood of bad input must not multiply that.
+    quotes a 10 kB input still yields one short line. Every line is published, but
+    rejections and internal errors are logged as warnings/errors at most once per
+    WARNING_INTERVAL_S (the others at debug level, counted in the next one): rclpy's
+    logger is slow per call (docs/results.md), and a flood of bad input must not multiply that.
+
+    The diagnostic level follows the last line: OK after an event (`info`), WARN after
+    a rejected input (`reject`), ERROR after an internal error (`error`, a bug caught in
+    a callback). It is published at 1 Hz, and at once when the level changes, with the
+    last line as its message and the counts of rejections and errors, plus `counters()`.
     """
 
-    def __init__(self, node: Node) -> None:
+    def __init__(self, node: Node, counters: Callable[[], dict[str, object]] = dict) -> None:
         self._node = node
+        self._counters = counters
         self._pub = node.create_publisher(String, STATUS, qos_profile(interface.STATUS))
+        self._diagnostics_pub = node.create_publisher(DiagnosticArray, DIAGNOSTICS, qos_profile(interface.DIAGNOSTICS))
         self._next_warning = 0.0
         self._unlogged = 0
+        self._level, self._message = DiagnosticStatus.OK, "started"
+        self._rejected = self._errors = 0
+        node.create_timer(DIAGNOSTICS_PERIOD_S, self.publish_diagnostics)
+
+    @property
+    def level(self) -> bytes:
+        """The node's diagnostic level (DiagnosticStatus.OK, WARN or ERROR)."""
+        return self._level
 
     def info(self, text: str) -> None:
-        line = self._line(text)
-        self._pub.publish(String(data=f"{self._node.get_name()}: {line}"))
+        line = self._publish(text, DiagnosticStatus.OK)
         self._node.get_logger().info(line)
 
     def reject(self, text: str) -> None:
+        """An input the node refused: it serves on (WARN)."""
+        self._rejected += 1
+        self._log_throttled(self._publish(text, DiagnosticStatus.WARN), self._node.get_logger().warning)
+
+    def error(self, text: str) -> None:
+        """A bug in gscan_ros caught in a callback: the node serves on (ERROR)."""
+        self._errors += 1
+        self._log_throttled(self._publish(text, DiagnosticStatus.ERROR), self._node.get_logger().error)
+
+    def publish_diagnostics(self) -> None:
+        values = {"rejected inputs": self._rejected, "internal errors": self._errors, **self._counters()}
+        status = DiagnosticStatus(
+            level=self._level, name=self._node.get_fully_qualified_name(), message=self._message,
+            hardware_id=HARDWARE_ID, values=[KeyValue(key=key, value=str(value)) for key, value in values.items()],
+        )
+        header = Header(stamp=self._node.get_clock().now().to_msg())
+        self._diagnostics_pub.publish(DiagnosticArray(header=header, status=[status]))
+
+    def _publish(self, text: str, level: bytes) -> str:
+        """Publish the line on `status` and take its level; returns the line."""
         line = self._line(text)
         self._pub.publish(String(data=f"{self._node.get_name()}: {line}"))
+        changed = level != self._level
+        self._level, self._message = level, line
+        if changed:
+            self.publish_diagnostics()
+        return line
+
+    def _log_throttled(self, line: str, log: Callable[[str], object]) -> None:
         now = time.monotonic()
         if now < self._next_warning:
             self._unlogged += 1
             self._node.get_logger().debug(line)
             return
-        more = f" (and {self._unlogged} more rejections, see the status topic)" if self._unlogged else ""
-        self._node.get_logger().warning(line + more)
+        more = f" (and {self._unlogged} more, see the status topic)" if self._unlogged else ""
+        log(line + more)
         self._next_warning, self._unlogged = now + WARNING_INTERVAL_S, 0
 
     @staticmethod
@@ -159,9 +205,9 @@ CallbackT = TypeVar("CallbackT", bound=Callable[..., None])
 def guarded(callback: CallbackT) -> CallbackT:
     """Decorate a node callback so no input can kill the node (the node has `self.status`).
 
-    A `GscanError` is a rejected input: its message goes to `status`. Anything else is a
-    bug in gscan_ros: the traceback goes to the log and a short line to `status`, and the
-    node keeps serving the next message.
+    A `GscanError` is a rejected input: its message goes to `status` (WARN). Anything else
+    is a bug in gscan_ros: the traceback goes to the log and a short line to `status`
+    (ERROR), and the node keeps serving the next message.
     """
 
     @functools.wraps(callback)
@@ -172,7 +218,7 @@ def guarded(callback: CallbackT) -> CallbackT:
             self.status.reject(str(exc))
         except Exception as exc:  # noqa: BLE001 - a node must survive its own bugs
             self.get_logger().error(traceback.format_exc())
-            self.status.reject(f"internal error in {callback.__name__}: {type(exc).__name__}: {exc}")
+            self.status.error(f"internal error in {callback.__name__}: {type(exc).__name__}: {exc}")
         return None
 
     return guarded_callback  # type: ignore[return-value]
@@ -181,8 +227,9 @@ def guarded(callback: CallbackT) -> CallbackT:
 def guarded_trigger(failure: str) -> Callable[[CallbackT], CallbackT]:
     """`guarded` for a std_srvs/Trigger service: any exception becomes `success=False`.
 
-    The response message is `<failure>: <reason>`, `status` gets the same line, and the
-    node keeps serving (an exception escaping a service callback ends the node).
+    The response message is `<failure>: <reason>`, `status` gets the same line (a
+    rejection, or an internal error for a bug), and the node keeps serving (an
+    exception escaping a service callback ends the node).
     """
 
     def decorate(callback: CallbackT) -> CallbackT:
@@ -191,12 +238,13 @@ def guarded_trigger(failure: str) -> Callable[[CallbackT], CallbackT]:
             try:
                 return callback(self, request, response)
             except GscanError as exc:
-                reason = str(exc)
+                report, reason = self.status.reject, str(exc)
             except Exception as exc:  # noqa: BLE001 - a node must survive its own bugs
                 self.get_logger().error(traceback.format_exc())
+                report = self.status.error
                 reason = f"internal error in {callback.__name__}: {type(exc).__name__}: {exc}"
             response.success, response.message = False, f"{failure}: {reason}"
-            self.status.reject(response.message)
+            report(response.message)
             return response
 
         return guarded_callback  # type: ignore[return-value]

@@ -41,7 +41,7 @@ class EpisodeRecorderNode(Node):
         self.declare_parameter("include_images", False, describe("also record world_image"))
         self.declare_parameter("overwrite", False, describe("replace an existing bag at bag_dir (read when a bag "
                                                             "is opened)"))
-        self.status = StatusReporter(self)
+        self.status = StatusReporter(self, counters=lambda: {"episodes recorded": self.episodes})
         self._writer = self._open_bag({})
         self._next_writer: BagWriter | None = None  # opened by a bag_dir change, taken after the set
         self._seen: set[str] = set()  # topics heard from (ready once the world state is among them)

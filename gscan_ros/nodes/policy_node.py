@@ -17,7 +17,8 @@ Episode protocol (docs/ros.md "Lock-step"):
   is preempted by a world reset (`world_reset`): the policy sends nothing more for it,
   and ignores observations, graphs and replies from before the reset.
 Each step also publishes every word module's attention map on `attention/<word>` and, for
-a command with a size word, the size-ordering map on `attention/size_ordering`.
+a command with a size word, the size-ordering map on `attention/size_ordering`, each with
+the header (stamp, grid frame) of the observation it was computed from.
 """
 from __future__ import annotations
 
@@ -27,7 +28,7 @@ import numpy as np
 from actionlib_msgs.msg import GoalStatus
 from rclpy.node import Node
 from sensor_msgs.msg import Image
-from std_msgs.msg import Header, String, UInt8MultiArray
+from std_msgs.msg import Header, String
 
 from gscan_ros import interface
 from gscan_ros.data import episode_status as es
@@ -87,7 +88,7 @@ class PolicyNode(Node):
             "device", "cpu", describe("where the model runs: cpu, cuda, or auto (cuda if torch sees a GPU); a change "
                                       "reloads the model", constraints="one of: cpu, cuda, auto")
         )
-        self.status = StatusReporter(self)
+        self.status = StatusReporter(self, counters=lambda: {"episodes": self._episodes})
         configure_torch(self.get_parameter("torch_threads").value)
         self._policy = policy if policy is not None else self._load_policy({})
         self._candidate = None  # loaded while a checkpoint/device change is checked
@@ -100,6 +101,7 @@ class PolicyNode(Node):
         self._size_ordering_pub = None
         self._observation: np.ndarray | None = None
         self._observation_ns = 0  # DDS source timestamp of the newest observation
+        self._observation_header = Header()  # its stamp and frame
         self._sent_ns = -1  # when the last action the world replies to (not <eos>) left this node (-1: never)
         self._graph: CommandGraph | None = None  # the running episode's graph, None when idle
         self._graph_ns = 0  # DDS source timestamp of the running episode's graph
@@ -114,7 +116,7 @@ class PolicyNode(Node):
 
         self.create_subscription(Header, WORLD_RESET, self.on_world_reset, newest(interface.WORLD_RESET))
         self.create_subscription(String, COMMAND_GRAPH, self.on_graph, newest(interface.COMMAND_GRAPH))
-        self.create_subscription(UInt8MultiArray, OBSERVATION, self.on_observation, newest(interface.OBSERVATION))
+        self.create_subscription(Image, OBSERVATION, self.on_observation, newest(interface.OBSERVATION))
         self.add_on_set_parameters_callback(validated(self._check_parameters))
         self.add_post_set_parameters_callback(self._apply_parameters)
         self.get_logger().info(f"policy ready (parser {self._policy.parser_name})")
@@ -191,12 +193,13 @@ class PolicyNode(Node):
             self._act()
 
     @guarded
-    def on_observation(self, msg: UInt8MultiArray, info: dict) -> None:
+    def on_observation(self, msg: Image, info: dict) -> None:
         if info["source_timestamp"] < self._reset_ns:
             return  # a state of the world before the reset, delivered late
         # Kept even when it does not fit the checkpoint, so the next command is refused
         # with the reason instead of waiting for a state it can use.
         self._observation, self._observation_ns = msg_to_observation(msg), info["source_timestamp"]
+        self._observation_header = msg.header  # the maps computed from it show its state
         try:
             self._check_grid(self._observation)
         except GscanError as exc:
@@ -256,14 +259,15 @@ class PolicyNode(Node):
             if pub is None:
                 pub = self._attention_pubs[word] = self.create_publisher(
                     Image, attention_topic(word), qos_profile(interface.ATTENTION))
-            pub.publish(attention_to_msg(weights, upsample=upsample))
+            pub.publish(attention_to_msg(weights, upsample=upsample, header=self._observation_header))
 
     def _publish_size_ordering(self, ordering: np.ndarray) -> None:
         """Shifted to start at 0, so the smallest object is darkest and the biggest lightest."""
         if self._size_ordering_pub is None:
             self._size_ordering_pub = self.create_publisher(Image, SIZE_ORDERING, qos_profile(interface.SIZE_ORDERING))
         upsample = self.get_parameter("attention_upsample").value
-        self._size_ordering_pub.publish(attention_to_msg(ordering - ordering.min(), upsample=upsample))
+        self._size_ordering_pub.publish(attention_to_msg(ordering - ordering.min(), upsample=upsample,
+                                                         header=self._observation_header))
 
 
 def main(args: list[str] | None = None) -> int:

@@ -18,7 +18,7 @@ from pathlib import Path
 
 from rclpy.node import Node
 from sensor_msgs.msg import Image
-from std_msgs.msg import Header, String, UInt8MultiArray
+from std_msgs.msg import Header, String
 from std_srvs.srv import Trigger
 
 from gscan_ros import interface
@@ -43,7 +43,14 @@ from gscan_ros.nodes.common import (
 )
 from gscan_ros.world.types import GRID_SIZE, SUPPORTED_GRID_SIZES, Action
 from gscan_ros.world.world import World
-from msg_adapters import image_to_msg, msg_to_action, observation_to_msg, reset_to_msg, situation_to_msg
+from msg_adapters import (
+    grid_header,
+    image_to_msg,
+    msg_to_action,
+    observation_to_msg,
+    reset_to_msg,
+    situation_to_msg,
+)
 
 SOURCE_PARAMETERS = ("dataset", "split", "index", "seed", "grid_size")
 MAX_INDEX = 2**31 - 1
@@ -71,15 +78,15 @@ class WorldSimulatorNode(Node):
                                              "reset_world)", int_range=grids)
         )
         self.declare_parameter("publish_images", True, describe("render and publish world_image after every step"))
-        self.status = StatusReporter(self)
+        self.status = StatusReporter(self, counters=lambda: {"actions since reset": self._actions})
         self._source = self._new_source()
         self._reset_pub = self.create_publisher(Header, WORLD_RESET, qos_profile(interface.WORLD_RESET))
-        self._observation_pub = self.create_publisher(UInt8MultiArray, OBSERVATION,
-                                                      qos_profile(interface.OBSERVATION))
+        self._observation_pub = self.create_publisher(Image, OBSERVATION, qos_profile(interface.OBSERVATION))
         self._situation_pub = self.create_publisher(String, SITUATION, qos_profile(interface.SITUATION))
         self._image_pub = self.create_publisher(Image, WORLD_IMAGE, qos_profile(interface.WORLD_IMAGE))
         self._world: World | None = None
         self._reset_ns = 0
+        self._state_ns = 0  # when the world reached its current state: its observation's stamp
         self._actions = 0  # actions applied since the last reset or <eos>
         self.load(self._source.next())  # a bad dataset is a start-up error (run() reports it)
         self.create_subscription(String, ACTION, self.on_action, qos_profile(interface.ACTION))
@@ -91,6 +98,11 @@ class WorldSimulatorNode(Node):
     def world(self) -> World:
         """The simulated world (for in-process users: bringup, tests)."""
         return self._world
+
+    @property
+    def state_ns(self) -> int:
+        """When the world reached its current state (ns since the epoch): the stamp of its observation."""
+        return self._state_ns
 
     def _new_source(self):
         """The situation sequence the parameters describe (its first item: `index`, or `seed`)."""
@@ -118,20 +130,25 @@ class WorldSimulatorNode(Node):
         self._reset_ns = time.time_ns()
         self._actions = 0
         self._reset_pub.publish(reset_to_msg(self._reset_ns))
-        self.publish_state()
+        self.publish_state(self._reset_ns)
         text = f"loaded {self._source.describe(episode)}; its command: {episode.command!r}"
         self.status.info(text)
         return text
 
-    def publish_state(self) -> None:
+    def publish_state(self, state_ns: int | None = None) -> None:
         """situation, then observation (what the policy waits for), then the slow image.
 
-        Recorders pair an observation with the newest situation published before it.
+        Recorders pair an observation with the newest situation published before it. The
+        observation and the image are stamped with `state_ns`, when the world reached
+        the state (a load: its reset time; else now), in the grid frame (docs/ros.md
+        "Frames and stamps").
         """
+        self._state_ns = time.time_ns() if state_ns is None else state_ns
+        header = grid_header(self._state_ns)
         self._situation_pub.publish(situation_to_msg(self._world.snapshot()))
-        self._observation_pub.publish(observation_to_msg(self._world.encode()))
+        self._observation_pub.publish(observation_to_msg(self._world.encode(), header=header))
         if self.get_parameter("publish_images").value:
-            self._image_pub.publish(image_to_msg(self._world.render()))
+            self._image_pub.publish(image_to_msg(self._world.render(), header=header))
 
     @guarded
     def on_action(self, msg: String, info: dict) -> None:

@@ -56,8 +56,8 @@ def test_replay_limits_and_filters_episodes(replay_env, capsys):
 
 def test_replay_errors_are_one_line(replay_env, tmp_path, capsys):
     bag, _, _ = replay_env
-    assert main(["replay", str(bag), "--splits", "dev"]) == 1
-    assert "no complete episodes to replay" in capsys.readouterr().err
+    assert main(["replay", str(bag), "--splits", "dev"]) == 1  # a split the bag has none of (or a typo) is named
+    assert "no examples in split(s) dev of" in capsys.readouterr().err
     assert main(["replay", str(tmp_path / "missing")]) == 1
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "no metadata.yaml" in err
@@ -87,3 +87,4 @@ def test_replay_end_to_end_with_a_real_checkpoint(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "replayed 4 episodes" in out and "(parser semantic)" in out
     assert "exact match:" in out and "/4)" in out
+

@@ -239,3 +239,19 @@ def test_diagnostics_carry_the_level_of_the_last_status_line(probe, world):
     node._source.next = lambda: 1 / 0
     assert not call_reset(probe).success
     probe.spin_until(newest(DiagnosticStatus.ERROR), what="ERROR after an internal error")
+
+
+def test_a_huge_action_is_reported_in_one_short_line_without_copying_it(probe, world):
+    import tracemalloc
+
+    node, observations, status = world
+    huge = String(data="walk" * 5_000_000)  # 20 MB
+    tracemalloc.start()
+    try:
+        node.on_action(huge, source_info())
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    probe.spin_until(lambda: any("20000000 chars" in s.data for s in status), what="the rejection")
+    line = next(s.data for s in status if "20000000 chars" in s.data)
+    assert len(line) <= len("world_simulator_node: ") + 300 and peak < 2_000_000, (len(line), peak)

@@ -35,11 +35,14 @@ def register(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from gscan_ros.data.bag import iter_bag_episodes
+    from gscan_ros.data.io import require_splits
     from gscan_ros.model.policy import Policy
     from gscan_ros.training.evaluate import evaluate_episodes
     from gscan_ros.training.failures import failure_label
 
     reader = iter_bag_episodes(args.bag, args.splits, include_incomplete=args.include_incomplete)
+    if args.splits and reader.info.splits:  # a split the bag's writer counted none of: a typo, or not this bag's
+        require_splits(args.splits, reader.info.splits, args.bag)
     episodes = list(itertools.islice(reader, args.max_episodes))
     if not episodes:
         raise DatasetFormatError(f"{args.bag}: no complete episodes to replay ({reader.report.summary()})")

@@ -113,7 +113,10 @@ def validated(check: Callable[[dict[str, object]], None]) -> Callable[[list], Se
 
 
 def quote(value: object) -> str:
-    """repr() of a rejected input, shortened so a 10 kB command gives a one-line status."""
+    """repr() of a rejected input, shortened so a 10 kB command gives a one-line status;
+    only the start of a long text is looked at, so a 50 MB one costs no more."""
+    if isinstance(value, str) and len(value) > ECHO_CHARS:
+        return f"{repr(value[:ECHO_CHARS])[:ECHO_CHARS]}... ({len(value)} chars)"
     text = repr(value)
     return text if len(text) <= ECHO_CHARS else f"{text[:ECHO_CHARS]}... ({len(str(value))} chars)"
 

@@ -18,8 +18,49 @@ PLAIN_ENCAPSULATIONS = {0x0000: ">", 0x0001: "<", 0x0006: ">", 0x0007: "<"}
 
 
 def msg_to_cdr(msg: object) -> bytes:
-    """Serialize a ROS message to the CDR bytes a bag stores."""
-    return serialize_message(msg)
+    """Serialize a ROS message to the CDR bytes a bag stores. The serializer leaves CDR's
+    alignment padding as it found the memory; it is zeroed for the types with padding that
+    our bags carry, so the same episodes always give the same bytes."""
+    data = serialize_message(msg)
+    padding = _PADDING.get(f"{type(msg).__module__.split('.')[0]}/{type(msg).__name__}")
+    return data if padding is None else _zeroed(data, padding(data))
+
+
+def _aligned(position: int) -> int:
+    """The next 4-byte boundary of a CDR body (which starts after the 4-byte encapsulation)."""
+    return position + (-(position - 4)) % 4
+
+
+def _string_end(data: bytes, position: int, endian: str) -> int:
+    (chars,) = struct.unpack_from(f"{endian}I", data, position)
+    return position + 4 + chars
+
+
+def _image_padding(data: bytes) -> list[slice]:
+    """sensor_msgs/Image: after header.frame_id, and after encoding + is_bigendian."""
+    endian = PLAIN_ENCAPSULATIONS[int.from_bytes(data[:2], "big")]
+    frame_end = _string_end(data, 12, endian)  # encapsulation 4, stamp 8
+    encoding_end = _string_end(data, _aligned(frame_end) + 8, endian)  # height, width
+    return [slice(frame_end, _aligned(frame_end)), slice(encoding_end + 1, _aligned(encoding_end + 1))]
+
+
+def _goal_status_padding(data: bytes) -> list[slice]:
+    """actionlib_msgs/GoalStatus: after goal_id.id + the status byte."""
+    endian = PLAIN_ENCAPSULATIONS[int.from_bytes(data[:2], "big")]
+    status_end = _string_end(data, 12, endian) + 1  # encapsulation 4, stamp 8, id, status
+    return [slice(status_end, _aligned(status_end))]
+
+
+_PADDING = {"sensor_msgs/Image": _image_padding, "actionlib_msgs/GoalStatus": _goal_status_padding}
+
+
+def _zeroed(data: bytes, spans: list[slice]) -> bytes:
+    if all(not any(data[span]) for span in spans):
+        return data
+    out = bytearray(data)
+    for span in spans:
+        out[span] = bytes(span.stop - span.start)
+    return bytes(out)
 
 
 def cdr_to_msg(data: bytes, msg_type: type[M]) -> M:

@@ -280,3 +280,21 @@ def test_typed_cdr_decoders_of_the_bag_code():
     np.testing.assert_array_equal(cdr_to_observation(msg_to_cdr(observation_to_msg(observation))), observation)
     assert cdr_to_action(msg_to_cdr(action_to_msg(Action.PUSH))) is Action.PUSH
     assert cdr_to_text(msg_to_cdr(text_to_msg('{"episode_id": 0, "command": "walk"}'))).startswith('{"episode_id"')
+
+
+def test_cdr_padding_is_zeroed_so_equal_messages_give_equal_bytes():
+    """The serializer leaves CDR alignment padding as it found the memory: bags would differ
+    run to run. Image (after the frame id and is_bigendian) and GoalStatus (after the status)."""
+    from actionlib_msgs.msg import GoalID, GoalStatus
+    from sensor_msgs.msg import Image
+    from std_msgs.msg import Header
+
+    from msg_adapters import cdr_to_msg, msg_to_cdr
+
+    image = Image(header=Header(frame_id="gscan_grid"), height=1, width=1, encoding="8UC16", step=16,
+                  data=bytes(16))
+    status = GoalStatus(goal_id=GoalID(id="/policy_node/10"), status=GoalStatus.ACTIVE, text="walk")
+    for msg, padding in ((image, [slice(27, 28), slice(47, 48)]), (status, [slice(33, 36)])):
+        data = msg_to_cdr(msg)
+        assert all(b == 0 for span in padding for b in data[span]), data
+        assert cdr_to_msg(data, type(msg)) == msg

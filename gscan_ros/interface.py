@@ -90,7 +90,7 @@ SITUATION = Endpoint("situation", TOPIC, "std_msgs/msg/String", LATCHED, recorde
 WORLD_RESET = Endpoint("world_reset", TOPIC, "std_msgs/msg/Header", LATCHED, recorded=True)
 WORLD_IMAGE = Endpoint("world_image", TOPIC, "sensor_msgs/msg/Image", LATCHED, recorded=True)
 ACTION = Endpoint("action", TOPIC, "std_msgs/msg/String", EVENTS, recorded=True)
-# The policy's report on each episode: started, and how it ended (gscan_ros.data.episode_status).
+# The policy's report on each episode: started, and how it ended (gscan_ros.episode_status).
 EPISODE_STATUS = Endpoint("episode_status", TOPIC, "actionlib_msgs/msg/GoalStatus", EVENTS, recorded=True)
 # What a bag knows of an episode beyond the live topics (split, example, dataset fields):
 # JSON written by the bag writers, keyed by the episode's status id (docs/bags.md).

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from actionlib_msgs.msg import GoalID, GoalStatus
 
-from gscan_ros.data import episode_status as es
+from gscan_ros import episode_status as es
 from gscan_ros.errors import GscanError
 from msg_adapters.cdr import cdr_to_msg
 from msg_adapters.errors import MessageFormatError

@@ -19,7 +19,7 @@ import numpy as np
 from mcap.reader import make_reader
 from std_msgs.msg import MultiArrayDimension, String, UInt8MultiArray
 
-from gscan_ros.data import episode_status as es
+from gscan_ros import episode_status as es
 from gscan_ros.data.bag import EPISODE_PERIOD_NS, LIVE_SPLIT, STEP_NS, BagWriter, legacy_header
 from gscan_ros.data.bag_metadata import EPISODE_FORMAT_VERSION
 from gscan_ros.data.episode import Episode

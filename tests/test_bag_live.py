@@ -8,7 +8,7 @@ import pytest
 from mcap.reader import make_reader
 from std_msgs.msg import String
 
-from gscan_ros.data import episode_status as es
+from gscan_ros import episode_status as es
 from gscan_ros.data.bag import LIVE_SPLIT, BagEpisodeReader, BagWriter, iter_bag_episodes, read_bag_info, write_bag
 from gscan_ros.data.episode import Episode
 from gscan_ros.errors import DatasetFormatError

@@ -6,8 +6,8 @@ import json
 import pytest
 import torch
 
+from gscan_ros import episode_status as es
 from gscan_ros.cli import main
-from gscan_ros.data import episode_status as es
 from gscan_ros.data.bag import BagEpisodeReader
 from gscan_ros.data.bag_cache import load_episode_cache
 from gscan_ros.model.checkpoint import read_checkpoint

@@ -8,7 +8,7 @@ import yaml
 from actionlib_msgs.msg import GoalStatus
 from std_msgs.msg import String
 
-from gscan_ros.data import episode_status as es
+from gscan_ros import episode_status as es
 from gscan_ros.data.bag import BagEpisodeReader, BagWriter, read_bag_info
 from gscan_ros.nodes.commander import Outcome
 from gscan_ros.nodes.common import EVENT_QOS

@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import argparse
 
+from gscan_ros import episode_status as es
 from gscan_ros.cli.args import existing_path, nonnegative_int, positive_int
-from gscan_ros.data import episode_status as es
 from gscan_ros.data.bag_format import LIVE_SPLIT
 
 

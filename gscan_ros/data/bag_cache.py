@@ -25,7 +25,7 @@ from typing import Iterable
 
 import numpy as np
 
-from gscan_ros.data import episode_status as es
+from gscan_ros import episode_status as es
 from gscan_ros.data.bag_format import GraphCache, episode_from_header
 from gscan_ros.data.bag_metadata import CACHE_DIR, METADATA_FILE, read_bag_info
 from gscan_ros.data.bag_reader import BagEpisodeReader

@@ -21,7 +21,7 @@ from typing import Iterable
 from gscan_ros.data.bag_metadata import EPISODE_FORMAT_VERSION, LEGACY_FORMAT_VERSION
 from gscan_ros.data.bag_schema import ACTION, COMMAND, COMMAND_GRAPH, OBSERVATION, WORLD_IMAGE
 from gscan_ros.data.episode import Episode
-from gscan_ros.data.episode_status import outcome_of
+from gscan_ros.episode_status import outcome_of
 from gscan_ros.errors import DatasetFormatError, GscanError
 from gscan_ros.language.graph import CommandGraph
 from gscan_ros.world.types import Action, Situation

@@ -17,8 +17,8 @@ from typing import Iterable, Iterator
 
 import numpy as np
 
+from gscan_ros import episode_status as es
 from gscan_ros import interface
-from gscan_ros.data import episode_status as es
 from gscan_ros.data.bag_format import LEGACY_EPISODE_TOPICS, GraphCache, episode_from_header
 from gscan_ros.data.bag_metadata import LEGACY_FORMAT_VERSION, read_bag_info
 from gscan_ros.data.bag_report import BagReadReport

@@ -18,7 +18,7 @@ from pathlib import Path
 from mcap.records import Channel
 from mcap.well_known import SchemaEncoding
 
-from gscan_ros.data import episode_status as es
+from gscan_ros import episode_status as es
 from gscan_ros.data.bag_format import LEGACY_EPISODE_TOPICS, LIVE_SPLIT
 from gscan_ros.data.bag_metadata import EPISODE_FORMAT, LEGACY_FORMAT_VERSION, METADATA_FILE, BagInfo, read_bag_info
 from gscan_ros.data.bag_report import BagReadReport

@@ -19,7 +19,7 @@ from mcap.well_known import MessageEncoding, Profile, SchemaEncoding
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 
-from gscan_ros.data import episode_status as es
+from gscan_ros import episode_status as es
 from gscan_ros.data.bag_format import ACTION_DELAY_NS, EPISODE_PERIOD_NS, PROLOGUE_NS, STEP_NS, episode_record
 from gscan_ros.data.bag_metadata import (
     EPISODE_FORMAT,

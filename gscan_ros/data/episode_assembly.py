@@ -28,8 +28,8 @@ import json
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterable, Iterator, NamedTuple
 
+from gscan_ros import episode_status as es
 from gscan_ros import interface
-from gscan_ros.data import episode_status as es
 from gscan_ros.data.bag_format import LIVE_SPLIT
 from gscan_ros.data.bag_metadata import EPISODE_FORMAT_VERSION
 from gscan_ros.errors import DatasetFormatError, GscanError

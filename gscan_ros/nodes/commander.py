@@ -33,8 +33,8 @@ from sensor_msgs.msg import Image
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
+from gscan_ros import episode_status as es
 from gscan_ros import interface
-from gscan_ros.data import episode_status as es
 from gscan_ros.errors import GscanError
 from gscan_ros.language.graph import CommandGraph
 from gscan_ros.nodes.common import (

@@ -17,8 +17,8 @@ import time
 
 from rclpy.node import Node
 
+from gscan_ros import episode_status as es
 from gscan_ros import interface
-from gscan_ros.data import episode_status as es
 from gscan_ros.data.bag import LIVE_SPLIT, BagWriter
 from gscan_ros.data.bag_metadata import EPISODE_FORMAT_VERSION
 from gscan_ros.data.bag_schema import EPISODE, TOPICS, msg_class

@@ -23,7 +23,7 @@ from rclpy.node import Node
 from std_msgs.msg import String
 
 from gscan_ros import interface
-from gscan_ros.data.episode_status import REJECTED, EpisodeStatus
+from gscan_ros.episode_status import REJECTED, EpisodeStatus
 from gscan_ros.errors import CommandError, GscanError
 from gscan_ros.language.canonical import canonicalize
 from gscan_ros.language.parser import Parser

@@ -30,8 +30,8 @@ from rclpy.node import Node
 from sensor_msgs.msg import Image
 from std_msgs.msg import Header, String
 
+from gscan_ros import episode_status as es
 from gscan_ros import interface
-from gscan_ros.data import episode_status as es
 from gscan_ros.errors import GscanError
 from gscan_ros.language.graph import CommandGraph
 from gscan_ros.model.policy import MAX_STEPS

@@ -47,3 +47,14 @@ def test_shipped_configs_load_every_setting_they_name(path):
 def test_length_config_widens_the_cnn_as_the_original():
     cfg = TrainConfig.load(Path(__file__).resolve().parents[1] / "configs" / "length.yaml", [])
     assert cfg.model_config().cnn_kernels == (1, 5, 13)
+
+
+def test_default_config_is_the_shipped_models():
+    """configs/default.yaml trains the shipped model: the config its run recorded, threads aside."""
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[1]
+    recorded = yaml.safe_load((repo / "results/recipe/fast_minmax_s0/config.yaml").read_text())
+    default = TrainConfig.load(repo / "configs/default.yaml", []).to_dict()
+    assert {k: v for k, v in default.items() if k in recorded and k != "threads"} == {
+        k: v for k, v in recorded.items() if k in default and k != "threads"}

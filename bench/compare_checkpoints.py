@@ -3,7 +3,7 @@
     .venv/bin/python bench/compare_checkpoints.py --data DIR --checkpoint LABEL=CKPT [LABEL=CKPT ...]
                                                   [--max-examples 1000] [--threads 1] [--splits ...]
 
-Issue #12 asks that the fast recipe be at least as good as the faithful one on every
+The fast recipe must be at least as good as the faithful one on every
 split at the same number of updates: give the faithful run's snapshot first and the
 fast runs' checkpoints at the same update after it. The episodes are read once and every
 checkpoint decodes the same seeded subset of each split (`evaluate --max-examples`). The

@@ -1,4 +1,5 @@
-"""Split G, the adverb k-shot protocol (GSCAN_SPEC §7.3): one model per k, exact match on adverb_1.
+"""Split G, the adverb k-shot protocol (Ruis et al. 2020; docs/data.md, "Splits"):
+one model per k, exact match on adverb_1.
 
     .venv/bin/python bench/kshot.py [--ks 1 5 10 50] [--updates 5000] [--parallel 2]
                                     [--eval-examples 10000] [--examples N | full]

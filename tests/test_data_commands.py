@@ -1,4 +1,4 @@
-"""The 675 gSCAN commands and their dataset strings (GSCAN_SPEC §5, §6.2)."""
+"""The 675 gSCAN commands and their dataset strings (Ruis et al. 2020; docs/data.md)."""
 import pytest
 
 from gscan_ros.data.commands import ALL_COMMANDS, COMMANDS, grammar_string, parse_command

@@ -41,7 +41,7 @@ def test_released_example_fields():
     assert len(s.placed_objects) == 12
     assert (s.target_object.color, s.target_object.shape, s.target_object.size) == ("green", "square", 1)
     assert example.referred_target == "small green square" and example.manner == "cautiously"
-    # Blocked push: no push action (GSCAN_SPEC §3.2), and the planner agrees.
+    # Blocked push: no push action (docs/world.md, "Physics decisions"), and the planner agrees.
     assert Action.PUSH not in example.target_commands
     assert demonstrate(s, example.command) == list(example.target_commands)
 

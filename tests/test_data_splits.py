@@ -1,4 +1,4 @@
-"""Hold-out rules B-H and the split set operations (GSCAN_SPEC §7)."""
+"""Hold-out rules B-H and the split set operations (Ruis et al. 2020; docs/data.md)."""
 import numpy as np
 import pytest
 

@@ -146,7 +146,7 @@ def test_device_names():
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU (CI runs on the CPU)")
 def test_cuda_runs_what_the_cpu_runs(dataset, one_process, tmp_path):
-    """Needs a GPU (skipped without one); passed on an NVIDIA H200 in session 10 (docs/scaling.md)."""
+    """Needs a GPU (skipped without one); passed on an NVIDIA H200 on 2026-11-30 (docs/scaling.md)."""
     from gscan_ros.language.registry import get_parser
     from gscan_ros.model.policy import Policy
     from gscan_ros.training.batches import EpisodeStore

@@ -1,4 +1,4 @@
-"""`gscan-ros experiment` and `gscan-ros report` (issue #14): a plan of tiny runs is trained,
+"""`gscan-ros experiment` and `gscan-ros report`: a plan of tiny runs is trained,
 evaluated, skipped when done, resumed when killed, shared between workers; the report
 puts mean ± std over seeds beside the paper's figures, reproducibly."""
 import json

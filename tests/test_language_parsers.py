@@ -106,7 +106,8 @@ def test_fig2_snapshot(name):
     assert shape(get_parser(name).parse("Pull a red circle hesitantly.")) == FIG2[name]
 
 
-# "walk to a red small circle while spinning": the original's chain (GSCAN_SPEC §8.3), shared big|small.
+# "walk to a red small circle while spinning": the original's chain
+# (github.com/ylkuo/compositional-gscan), shared big|small.
 SPINNING = {
     "semantic": (
         [(0, "while spinning", "while spinning", 1, 0), (1, "walk", "walk", 1, 0), (2, "red", "red", 1, 0),

@@ -46,7 +46,8 @@ def test_dropping_rows_keeps_the_built_projection_weights_and_their_layout():
 
 
 def test_parameter_count_matches_the_original():
-    # GSCAN_SPEC §8.4: ordinary arity-1 module 14,970 with 9 outputs; ours has 7 (no PAD/SOS): 14,928.
+    # github.com/ylkuo/compositional-gscan: ordinary arity-1 module 14,970 with 9 outputs;
+    # ours has 7 (no PAD/SOS): 14,928.
     net = make_net(graphs=[chain(["walk", "circle"])])
     bank = net.bank
     m = net.table.index["walk"]
@@ -70,7 +71,7 @@ def test_gradients_reach_every_module_used(message, attention_state):
         assert (bank.att_state_w.grad.flatten(1).abs().sum(1) > 0).sum() >= len(used)
     if message == "attention" and attention_state == "broadcast":
         # Only maps leave a module, and its own state cancels in its attention's softmax
-        # (GSCAN_SPEC §8.4 broadcasts it over cells): only root GRUs can get gradient.
+        # (the original broadcasts it over cells): only root GRUs can get gradient.
         # (Before the fast path skipped the inert GRUs, the others got ~1e-8 rounding noise.)
         used_gru = {net.table.index[g.node(g.root).module] for g in graphs}
     else:

@@ -1,4 +1,4 @@
-"""World.step physics, encoding layout and error behaviour (GSCAN_SPEC §1, §2, §3.2, §4)."""
+"""World.step physics, encoding layout and error behaviour (docs/world.md)."""
 import numpy as np
 import pytest
 

@@ -1,4 +1,5 @@
-"""Planner: every worked example of GSCAN_SPEC §3, turn rules, manners, referents."""
+"""Planner: worked examples of the original planner
+(github.com/LauraRuis/groundedSCAN), turn rules, manners, referents."""
 import pytest
 
 from gscan_ros.errors import CommandError, SituationError

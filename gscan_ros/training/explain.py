@@ -303,7 +303,7 @@ def summarize(readings: Iterable[Reading]) -> dict[str, dict]:
 def size_word_first(r: Reading) -> bool | None:
     """Is the size word's own map higher at the target than at every other object the
     command names (its shape, and its colour when it has one: what "small" and "big" are
-    relative to, GSCAN_SPEC §1.3)? None without a size word, a target or a second such
+    relative to: docs/world.md, "Planner")? None without a size word, a target or a second such
     object. A map ordered by size passes whatever the parse feeds it."""
     target = r.situation.target_object
     if r.size_word is None or target is None:

@@ -34,7 +34,7 @@ COLUMN_TITLES = {
 # Training examples (updates x batch) behind the published figures: the paper's models
 # were "trained for 150,000 steps with batch size 200" (its experimental setup); its
 # Seq2seq figures are those of Ruis et al. (2020), whose baseline trained 200,000
-# iterations of 200 (GSCAN_SPEC.md, multimodal seq2seq training).
+# iterations of 200 (github.com/LauraRuis/multimodal_seq2seq_gSCAN, its training defaults).
 # GECA's figures are Ruis et al.'s too (the same baseline on the augmented set). AuxLoss and
 # LCGN trained on their own budgets (docs/model.md).
 PAPER_EXAMPLES = {"seq2seq": 200_000 * 200, "geca": 200_000 * 200}

@@ -461,7 +461,7 @@ def _failures(t: Tables) -> list[str]:
     return ["## Where the failures go", "",
             "% of each split's episodes failed in each way (`gscan-ros evaluate` replays the gold and the "
             "predicted actions: docs/model.md, \"Metrics\"), a column's seeds pooled; runs evaluated before "
-            "session 20 did not count them.", "",
+            "2026-12-01 did not count them.", "",
             "| column | split | episodes | " + " | ".join(map(failure_label, FAILURE_KINDS)) + " |",
             "|---|---|---:|" + "---:|" * len(FAILURE_KINDS), *rows, ""]
 

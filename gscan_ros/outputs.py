@@ -1,4 +1,4 @@
-"""The rules every `gscan-ros` writer follows for what it leaves on disk (docs/reliability.md §1).
+"""The rules every `gscan-ros` writer follows for what it leaves on disk (docs/reliability.md, section 1).
 
 - One writer per output: `claimed(path)` holds an exclusive `flock` on `<parent>/.<name>.lock`,
   beside the output so that the output holds only what the writer made; a second writer is

@@ -30,7 +30,7 @@ def plan(sit, command):
     return [a.token for a in demonstrate(sit, command)]
 
 
-# ---- §3.1 route and turns -------------------------------------------------------------
+# ---- route and turns ------------------------------------------------------------------
 def test_route_example_horizontal_first():
     s = situation((3, 3), [("circle", "red", 1, (1, 1))])
     assert plan(s, "walk to a circle") == [L, L, W, W, R, W, W]
@@ -72,7 +72,7 @@ def test_straight_routes(agent, heading, goal, expected):
     assert plan(s, "walk to a square") == expected
 
 
-# ---- §3.2 push / pull table --------------------------------------------------------------
+# ---- push / pull table -------------------------------------------------------------------
 @pytest.mark.parametrize(
     "command, objects, expected, final",
     [
@@ -101,7 +101,7 @@ def test_push_blocked_from_the_start_emits_no_primitive():
 
 
 def test_real_example_cautious_push_blocked_by_object_to_the_north(real_situation):
-    """GS example_prediction.json: target sequence without any push (§3.2)."""
+    """GS example_prediction.json: the push is blocked from the start, so no push at all."""
     s = Situation.from_json(real_situation)
     assert plan(s, "push a green small square cautiously") == [L, R, R, L, W, L, L, R, R, L, W]
 
@@ -112,7 +112,7 @@ def test_push_direction_is_the_last_move():
     assert actions == [W, W, L, W, W, "push", "push"]  # vertical leg last: pushed north to row 0
 
 
-# ---- §3.3 manners ----------------------------------------------------------------------------
+# ---- manners ---------------------------------------------------------------------------------
 def test_spinning_example_30_actions():
     s = situation((2, 1), [("square", "yellow", 3, (2, 3))])
     actions = plan(s, "push a square while spinning")
@@ -185,7 +185,7 @@ def test_zigzag_has_no_effect_on_the_interaction():
     assert plan(s, "push a circle while zigzagging") == [W, R, W] + ["push"] * 4
 
 
-# ---- §1.3 referents --------------------------------------------------------------------------
+# ---- referents -------------------------------------------------------------------------------
 def test_relative_size_compares_objects_with_the_same_name(real_situation):
     s = Situation.from_json(real_situation)
     assert resolve_target(s, "push a green small square") == WorldObject("square", "green", 1, P(1, 1))

@@ -103,7 +103,7 @@ class Command:
 
     @cached_property
     def derivation(self) -> str:
-        """Depth-first constituency derivation "<rules>;<lexicon>" as in released data (§6.2).
+        """Depth-first constituency derivation "<rules>;<lexicon>" as in released data (docs/data.md, "Commands").
 
         Rules are listed children-before-parent; the lexicon lists symbols in the order
         they are first met, a preterminal's rules most recent first (hence

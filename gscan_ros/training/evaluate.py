@@ -30,7 +30,10 @@ from gscan_ros.world.world import World
 
 
 def token_accuracy(predicted: Sequence, gold: Sequence) -> float:
-    """% of aligned positions that agree; the shorter sequence never matches past its end (§10)."""
+    """% of aligned positions that agree; the shorter sequence never matches past its end.
+
+    As `sequence_accuracy` of ylkuo/compositional-gscan `predict.py` (and MM's `seq2seq/helpers.py`).
+    """
     longest = max(len(predicted), len(gold))
     if longest == 0:
         return 100.0

@@ -47,7 +47,7 @@ class CommandFrame:
     """What a gSCAN command asks for. Absent parts are None.
 
     `verb` walk|push|pull; `manner` one of the four adverbs; `color`, `size`
-    ("small"/"big") and `shape` describe the referent (§1.3).
+    ("small"/"big", relative to the objects of the same name) and `shape` describe the referent.
     """
 
     verb: str
@@ -58,7 +58,7 @@ class CommandFrame:
 
     @classmethod
     def from_tokens(cls, tokens: Sequence[str]) -> "CommandFrame":
-        """Read the adverb grammar of §5.1/§5.2; raises CommandError on anything else.
+        """Read gSCAN's adverb grammar (docs/language.md, "Grammars"); raises CommandError on anything else.
 
         Form: `walk to a` | `push a` | `pull a`, then [COLOR] [SIZE] NOUN (color
         before size, each at most once), then at most one adverb.
@@ -107,10 +107,10 @@ class CommandFrame:
 
     @property
     def referred_target(self) -> str:
-        """The dataset's `referred_target`: size-color-noun with empty parts kept (§6.2)."""
+        """The dataset's `referred_target`: size-color-noun with empty parts kept (docs/data.md, "dataset.txt")."""
         return f"{self.size or ''} {self.color or ''} {self.shape}"
 
     @property
     def object_name(self) -> str:
-        """The name objects are looked up by: the noun, or color + noun (§1.3)."""
+        """The name objects are looked up by: the noun, or color + noun (docs/world.md, "Planner")."""
         return f"{self.color} {self.shape}" if self.color else self.shape

@@ -17,19 +17,20 @@ from gscan_ros.world.world import World
 
 WALK, LEFT, RIGHT, STAY = Action.WALK, Action.TURN_LEFT, Action.TURN_RIGHT, Action.STAY
 SPIN: tuple[Action, ...] = (LEFT,) * 4
-LOOK: tuple[Action, ...] = (LEFT, RIGHT, RIGHT, LEFT)  # the code's order, not the README's (§3.3)
+# Left first, as the original's `look_left_and_right` and its released data (its README says right first).
+LOOK: tuple[Action, ...] = (LEFT, RIGHT, RIGHT, LEFT)
 
 # Turn(s) from heading a to heading b, indexed (b - a) % 4: a 180° turn is two lefts.
 _TURNS: tuple[tuple[Action, ...], ...] = ((), (RIGHT,), (LEFT, LEFT), (LEFT,))
 
 
 def turns(start: Heading, goal: Heading) -> tuple[Action, ...]:
-    """The turn actions that face `goal` from `start` (§3.1 table)."""
+    """The turn actions that face `goal` from `start`: the minimal 90° turn, or two lefts for 180°."""
     return _TURNS[(goal - start) % 4]
 
 
 def resolve_target(situation: Situation, command: CommandFrame | str | Sequence[str]) -> WorldObject:
-    """The object a command refers to (§1.3); raises SituationError unless unique.
+    """The object a command refers to (the original's `World.object_positions`); raises SituationError unless unique.
 
     Candidates share the command's name (noun, or color + noun); "small"/"big"
     then keep those of the smallest/largest size among the candidates.
@@ -72,7 +73,7 @@ class _Demonstration:
         self.do(*turns(self.world.agent_direction, heading))
 
     def walk_straight(self, goal: Position, manner: str | None) -> None:
-        """Horizontal legs first, then vertical (§3.1), one manner unit per cell (§3.3)."""
+        """Horizontal legs first, then vertical, one manner unit per cell (the original's `go_to_position`)."""
         here = self.world.agent_position
         dc, dr = goal.col - here.col, goal.row - here.row
         legs = ((Heading.WEST if dc < 0 else Heading.EAST, abs(dc)),
@@ -89,7 +90,7 @@ class _Demonstration:
                     self.do(STAY)
 
     def zigzag(self, goal: Position) -> None:
-        """§3.3 zigzag: horizontal step, then alternate turn + walk until in line."""
+        """Zigzag as the original's `go_to_position`: horizontal step, then alternate turn + walk until in line."""
         here = self.world.agent_position
         if here.row == goal.row or here.col == goal.col:
             return
@@ -105,7 +106,7 @@ class _Demonstration:
             turn = LEFT if turn is RIGHT else RIGHT
 
     def interact(self, verb: Action, manner: str | None) -> None:
-        """Repeat push/pull while the world says the object can move (§3.2)."""
+        """Repeat push/pull while the world says the object can move (the original's `move_object_to_wall`)."""
         can_move = self.world.object_can_move
         while can_move(verb):
             if manner == "while spinning":

@@ -84,7 +84,7 @@ def _object(d: Any, where: str) -> WorldObject:
 
 
 def check_object_vector(obj: WorldObject, vector: Any, where: str = "vector") -> None:
-    """Reject a `vector` string that disagrees with the released channel order (§4).
+    """Reject a `vector` string that disagrees with the released channel order (`types.py`).
 
     A foreign file generated with another shape/color order shows up here, because
     its vectors set different bits for the same named object.

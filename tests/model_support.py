@@ -154,3 +154,19 @@ def tiny_checkpoint(path: Path, seed: int = 0, weight_scale: float = 1.0) -> Pat
             weights.mul_(weight_scale)
     save_checkpoint(path, checkpoint_dict(model, parser="semantic", lexicon=Lexicon.none(), step=0, metrics={}))
     return path
+
+
+def train_to_exact_match(update, batches, model, episodes, *, batch_size: int, max_updates: int,
+                         every: int = 50) -> tuple[float, int, float]:
+    """Overfit: `update` on `batches` until closed-loop exact match on `episodes` is 100 %
+    (checked every `every` updates) or `max_updates`; (exact match, updates, last loss)."""
+    from gscan_ros.training.evaluate import evaluate_episodes
+
+    exact = 0.0
+    for step in range(1, max_updates + 1):
+        loss = update(next(batches)[1])
+        if step % every == 0:
+            exact = evaluate_episodes(model, episodes, batch_size=batch_size).exact_match
+            if exact == 100.0:
+                break
+    return exact, step, loss

@@ -20,13 +20,12 @@ from gscan_ros.model.policy import Policy
 from gscan_ros.model.seq2seq import Seq2SeqBatch, command_vocabulary
 from gscan_ros.training.batches import EpisodeStore, EpochCursor, iterate_batches
 from gscan_ros.training.config import ConfigError, TrainConfig
-from gscan_ros.training.evaluate import evaluate_episodes
 from gscan_ros.training.step import TrainStep
 from gscan_ros.training.trainer import iter_split
 from gscan_ros.world.types import AGENT_CHANNEL, HEADING_CHANNEL0, Action
 
 import baseline_reference as reference
-from model_support import random_states, walk_episodes
+from model_support import random_states, train_to_exact_match, walk_episodes
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 EPISODES = {"auxloss": reference.auxloss_episode, "lcgn": reference.lcgn_episode}
@@ -123,13 +122,7 @@ def test_overfits_20_walk_episodes(kind):
     model = build(kind, **dict.fromkeys(dropouts, 0.0))
     update = TrainStep(model, torch.optim.Adam(model.parameters(), lr=3e-3), store)
     batches = iterate_batches(store, 20, "mixed", seed=0, cursor=EpochCursor())
-    exact = 0.0
-    for step in range(1, 401):
-        loss = update(next(batches)[1])
-        if step % 50 == 0:
-            exact = evaluate_episodes(model, episodes_, batch_size=20).exact_match
-            if exact == 100.0:
-                break
+    exact, step, loss = train_to_exact_match(update, batches, model, episodes_, batch_size=20, max_updates=400)
     assert exact == 100.0, f"closed-loop exact match {exact} after {step} updates (loss {loss:.4f})"
 
 

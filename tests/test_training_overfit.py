@@ -7,10 +7,9 @@ from gscan_ros.language.registry import get_parser
 from gscan_ros.model.compositional import CompositionalNetwork, ModelConfig
 from gscan_ros.model.policy import Policy
 from gscan_ros.training.batches import EpisodeStore, EpochCursor, iterate_batches
-from gscan_ros.training.evaluate import evaluate_episodes
 from gscan_ros.training.step import TrainStep
 
-from model_support import walk_episodes
+from model_support import train_to_exact_match, walk_episodes
 
 
 @pytest.mark.slow
@@ -24,11 +23,5 @@ def test_overfits_50_walk_episodes():
     update = TrainStep(net, torch.optim.Adam(net.parameters(), lr=3e-3), store)
     policy = Policy(net, "semantic")
     batches = iterate_batches(store, 50, "mixed", seed=0, cursor=EpochCursor())
-    exact = 0.0
-    for step in range(1, 601):
-        loss = update(next(batches)[1])
-        if step % 50 == 0:
-            exact = evaluate_episodes(policy, episodes, batch_size=50).exact_match
-            if exact == 100.0:
-                break
+    exact, step, loss = train_to_exact_match(update, batches, policy, episodes, batch_size=50, max_updates=600)
     assert exact == 100.0, f"closed-loop exact match {exact} after {step} updates (loss {loss:.4f})"

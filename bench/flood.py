@@ -18,10 +18,10 @@ import tempfile
 import time
 from pathlib import Path
 
-from _ros import NodeProcess, fresh_domain_id, ros_env
 from latency import resolve_checkpoint
 
 from gscan_ros.errors import GscanError
+from gscan_ros.nodes.processes import NodeProcess, fresh_domain_id, join_local_graph, ros_env
 
 BAD_COMMANDS = (
     "walk to a purple circle",
@@ -54,6 +54,7 @@ def main() -> int:
 
     tmp = Path(tempfile.mkdtemp(prefix="gscan_flood_"))
     checkpoint, label = resolve_checkpoint(args.checkpoint)
+    join_local_graph()  # before the commander's rclpy.init
     env = ros_env(fresh_domain_id(), tmp)
     nodes = {
         "world_simulator_node": NodeProcess("world_simulator_node", env, tmp, {"seed": 0}),

@@ -21,7 +21,8 @@ import time
 from pathlib import Path
 
 import numpy as np
-from _ros import NodeProcess, fresh_domain_id, ros_env
+
+from gscan_ros.nodes.processes import NodeProcess, fresh_domain_id, join_local_graph, ros_env
 
 
 def percentiles(ms: list[float]) -> str:
@@ -76,6 +77,7 @@ def main() -> int:
 
     tmp = Path(tempfile.mkdtemp(prefix="gscan_latency_"))
     checkpoint, label = resolve_checkpoint(args.checkpoint)
+    join_local_graph()  # before the commander's rclpy.init
     env = ros_env(fresh_domain_id(), tmp)
     nodes = [
         NodeProcess("world_simulator_node", env, tmp, {"seed": 0, "publish_images": not args.no_images}),

@@ -1,25 +1,16 @@
 """Test support for ROS: node processes, a probe node, parameters, an in-process stack.
 
-Used by the node and end-to-end tests and (through bench/_ros.py) the ROS benchmarks.
-It encodes this project's rules for DDS on shared machines (docs/ros.md "Testing"):
-discovery stays on loopback, every run uses its own domain and the fast-discovery Fast
-DDS profile, waits are bounded and keyed on messages or graph state (never fixed
-sleeps), and node processes run in their own session so they are stopped as a process
-group (SIGINT, then SIGKILL and `fastdds shm clean`).
+Used by the node and end-to-end tests. The node-process rules for DDS on shared machines
+(loopback, own domain, fast-discovery profile, process groups) live in
+`gscan_ros.nodes.processes`, shared with the ROS benches; waits here are bounded and keyed
+on messages or graph state (never fixed sleeps).
 
 Importing this module sets ROS_AUTOMATIC_DISCOVERY_RANGE, FASTRTPS_DEFAULT_PROFILES_FILE
-and ROS_LOG_DIR for the current process when unset, so import it before any rclpy.init.
-(It lived in the installed package as gscan_ros/nodes/harness.py; an import with such
-side effects belongs to the tests.)
+and ROS_LOG_DIR for the current process when unset (`join_local_graph`), so import it
+before any rclpy.init.
 """
 from __future__ import annotations
 
-import itertools
-import os
-import signal
-import subprocess
-import sys
-import tempfile
 import time
 from collections import defaultdict
 from collections.abc import Callable
@@ -29,121 +20,19 @@ import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
+from gscan_ros.nodes.processes import (  # noqa: F401  (NodeProcess, VENV_BIN, ros_env: for the tests)
+    VENV_BIN,
+    NodeProcess,
+    fresh_domain_id,
+    join_local_graph,
+    ros_env,
+)
 
-def _fast_discovery_profile() -> Path:
-    """config/fastdds_fast_discovery.xml of the source tree, else of the installed share/."""
-    name = Path("config") / "fastdds_fast_discovery.xml"
-    source = Path(__file__).resolve().parents[1] / name
-    if source.is_file():
-        return source
-    try:
-        from ament_index_python.packages import get_package_share_directory
-
-        return Path(get_package_share_directory("gscan_ros")) / name
-    except (ImportError, LookupError):
-        return source
-
-
-FAST_DISCOVERY_XML = _fast_discovery_profile()
-VENV_BIN = Path(sys.executable).parent
 STARTUP_TIMEOUT = 90.0  # node processes import torch on 2 busy cores
 TIMEOUT = 30.0
 
-# This process joins the same DDS graph as the node processes it starts: same profile,
-# loopback only, logs under a temp dir. Fast DDS reads the profile at first use.
-os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(FAST_DISCOVERY_XML))
-os.environ.setdefault("ROS_LOG_DIR", tempfile.mkdtemp(prefix="gscan_ros_test_log_"))
-
-_domains = itertools.count()
-
-
-def fresh_domain_id() -> int:
-    """The ROS domain for one test run: ROS_DOMAIN_ID when the environment sets it (a machine
-    that assigns each session its domain: the tests then take turns in it), else one within
-    1..100 (valid Fast DDS ports), varied by pid."""
-    assigned = os.environ.get("ROS_DOMAIN_ID", "")
-    if assigned.isdigit():
-        return int(assigned)
-    return 1 + (os.getpid() * 7 + next(_domains)) % 100
-
-
-def ros_env(domain_id: int, log_dir: Path) -> dict[str, str]:
-    """Environment for node processes: loopback discovery, own domain, unbuffered output."""
-    env = dict(os.environ)
-    env.update(
-        ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-        ROS_DOMAIN_ID=str(domain_id),
-        ROS_LOG_DIR=str(log_dir),
-        FASTRTPS_DEFAULT_PROFILES_FILE=str(FAST_DISCOVERY_XML),
-        PYTHONUNBUFFERED="1",
-        OMP_NUM_THREADS="1",
-    )
-    return env
-
-
-def ros_args(params: dict[str, object], remaps: dict[str, str] | None = None) -> list[str]:
-    """`--ros-args -p name:=value ... -r from:=to ...` for a node command line."""
-    args = ["--ros-args"]
-    for name, value in params.items():
-        text = str(value).lower() if isinstance(value, bool) else str(value)
-        args += ["-p", f"{name}:={text}"]
-    for source, target in (remaps or {}).items():
-        args += ["-r", f"{source}:={target}"]
-    return args
-
-
-class NodeProcess:
-    """One node executable (the installed console script) in its own session.
-
-    `executable` is a node name (console script, else `python -m gscan_ros.nodes.<name>`)
-    or a full argv list (e.g. `gscan-ros bringup ...`).
-    """
-
-    def __init__(self, executable: str | list[str], env: dict[str, str], log_dir: Path, params=None, remaps=None,
-                 name=None):
-        if isinstance(executable, str):
-            script = VENV_BIN / executable
-            command = [str(script)] if script.exists() else [sys.executable, "-m", f"gscan_ros.nodes.{executable}"]
-            command += ros_args(params or {}, remaps)
-        else:
-            command = list(executable)
-        self.name = name or Path(command[0]).name
-        self.log_path = log_dir / f"{self.name}.out"
-        self._log = open(self.log_path, "wb")
-        self.process = subprocess.Popen(
-            command, env=env, stdout=self._log, stderr=subprocess.STDOUT, start_new_session=True
-        )
-
-    def alive(self) -> bool:
-        return self.process.poll() is None
-
-    def output(self) -> str:
-        return self.log_path.read_text(errors="replace")
-
-    def stop(self, sig: int = signal.SIGINT, timeout: float = 15.0) -> int:
-        """Signal the process group; SIGKILL (and clean Fast DDS shared memory) after `timeout`."""
-        if self.alive():
-            os.killpg(self.process.pid, sig)
-            try:
-                self.process.wait(timeout)
-            except subprocess.TimeoutExpired:
-                self.kill()
-        self._log.close()
-        return self.process.returncode
-
-    def kill(self) -> None:
-        if self.alive():
-            os.killpg(self.process.pid, signal.SIGKILL)
-            self.process.wait()
-        clean_shared_memory()
-
-
-def clean_shared_memory() -> None:
-    """Remove Fast DDS shared-memory segments left by SIGKILLed participants."""
-    fastdds = VENV_BIN / "fastdds"
-    if fastdds.exists():
-        subprocess.run([str(fastdds), "shm", "clean"], capture_output=True, timeout=30, check=False)
+# This process joins the same DDS graph as the node processes it starts.
+join_local_graph()
 
 
 class Probe:

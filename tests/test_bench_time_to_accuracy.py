@@ -1,4 +1,4 @@
-"""bench/time_to_accuracy.py --from-runs: the summary of runs already trained, worked by hand."""
+"""bench/research/time_to_accuracy.py --from-runs: the summary of runs already trained, worked by hand."""
 import importlib.util
 import json
 from pathlib import Path
@@ -10,7 +10,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def tta():
-    spec = importlib.util.spec_from_file_location("time_to_accuracy", REPO / "bench/time_to_accuracy.py")
+    spec = importlib.util.spec_from_file_location("time_to_accuracy", REPO / "bench/research/time_to_accuracy.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module

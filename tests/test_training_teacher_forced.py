@@ -76,7 +76,7 @@ def test_snapshot_curve_bench_reads_every_snapshot_in_order(tmp_path, tiny_datas
     for step in (10, 2):
         tiny_checkpoint(run / f"step_{step}.pt", seed=step, weight_scale=3.0)
     out = tmp_path / "curve.json"
-    cmd = [sys.executable, str(REPO / "bench/snapshot_curve.py"), str(run), "--data", str(tiny_dataset),
+    cmd = [sys.executable, str(REPO / "bench/research/snapshot_curve.py"), str(run), "--data", str(tiny_dataset),
            "--splits", "test", "--max-examples", "6", "--train-containing", "walk", "--json", str(out)]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
@@ -94,7 +94,7 @@ def test_oversample_probe_trains_and_reports_every_watched_set(mixing, tmp_path,
     from model_support import tiny_checkpoint
 
     ckpt = tiny_checkpoint(tmp_path / "tiny.pt")
-    cmd = [sys.executable, str(REPO / "bench/oversample_probe.py"), "--checkpoint", str(ckpt), "--data",
+    cmd = [sys.executable, str(REPO / "bench/research/oversample_probe.py"), "--checkpoint", str(ckpt), "--data",
            str(tiny_dataset), "--word", "cautiously", "--updates", "4", "--eval-every", "2", "--subset", "40",
            "--batch-size", "8", "--split", "test", "--max-examples", "4", *mixing]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
@@ -135,7 +135,7 @@ def test_kshot_exposures_counts_passes_with_the_runs_own_batching(tmp_path, tiny
     oversampled = _fake_run(tmp_path / "oversampled", tiny_dataset, "mixed", 4, len(commands), k=walks,
                             oversample="oversample_word: walk\noversample_factor: 3\n", word="walk")
     png = tmp_path / "exposures.png"
-    cmd = [sys.executable, str(REPO / "bench/kshot_exposures.py"), str(mixed), str(grouped), "--png", str(png)]
+    cmd = [sys.executable, str(REPO / "bench/research/kshot_exposures.py"), str(mixed), str(grouped), "--png", str(png)]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     rows = {(r.split(" | ")[0][2:], int(r.split(" | ")[2])): float(r.split(" | ")[4])

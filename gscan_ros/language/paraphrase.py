@@ -1,4 +1,4 @@
-"""Paraphrases of a gSCAN command: the inverse of `canonicalize`, for tests and bench/paraphrase.py.
+"""Paraphrases of a gSCAN command: the inverse of `canonicalize`, for tests and bench/research/paraphrase.py.
 
 Each content word is replaced by one of its accepted WordNet synonyms (or kept), "a"
 becomes "a", "an" or "the", a color+size pair may take English order ("small red"),

@@ -1,12 +1,12 @@
 """Does fitting the few examples of a rare word transfer to its held-out split? A probe.
 
-    .venv/bin/python bench/oversample_probe.py --checkpoint RUN/model.pt --data DIR
+    .venv/bin/python bench/research/oversample_probe.py --checkpoint RUN/model.pt --data DIR
         [--word cautiously] [--per-batch 2] [--updates 2000] [--eval-every 500] [--lr 3e-4]
         [--subset 50000] [--split adverb_1] [--max-examples 300] [--seed 0] [--threads 1]
         [--alone EVERY]
 
 Split G's k-shot runs of the paper plan end at 0 % with their own k "cautiously" training
-examples unfitted (`bench/snapshot_curve.py --train-containing cautiously`). This
+examples unfitted (`bench/research/snapshot_curve.py --train-containing cautiously`). This
 continues such a checkpoint (its Adam state, at `--lr`) on batches of `batch_size` that
 always hold `--per-batch` of the train episodes whose command has `--word`, the rest drawn
 from a seeded `--subset` of the other train episodes, so each rare example is seen
@@ -45,7 +45,7 @@ def main() -> None:
                     help="instead of --per-batch: every EVERY-th update is one rare example alone")
     args = ap.parse_args()
     if args.alone < 0 or not 0 < args.per_batch < args.batch_size:
-        sys.exit(f"bench/oversample_probe.py: --per-batch must be in 1..{args.batch_size - 1}")
+        sys.exit(f"bench/research/oversample_probe.py: --per-batch must be in 1..{args.batch_size - 1}")
 
     import torch
 
@@ -77,9 +77,9 @@ def main() -> None:
             seen += 1
         held_out = select_test_episodes(args.data, [args.split, "test"], args.max_examples, args.seed)
     except (GscanError, OSError) as err:
-        sys.exit(f"bench/oversample_probe.py: {err}")
+        sys.exit(f"bench/research/oversample_probe.py: {err}")
     if not rare:
-        sys.exit(f"bench/oversample_probe.py: no train command of {args.data} has {args.word!r}")
+        sys.exit(f"bench/research/oversample_probe.py: no train command of {args.data} has {args.word!r}")
     store = EpisodeStore(rare + others, policy.parser)
     rare_ids = np.arange(len(rare))
     model = policy.model

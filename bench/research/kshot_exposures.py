@@ -1,9 +1,9 @@
 """Split G's learning curves of k-shot runs on one axis: exposures of the held-out word.
 
-    .venv/bin/python bench/kshot_exposures.py CURVE.json [CURVE.json ...] [--word cautiously]
+    .venv/bin/python bench/research/kshot_exposures.py CURVE.json [CURVE.json ...] [--word cautiously]
         [--split adverb_1] [--png FILE] [--paper-passes 81.5]
 
-Each CURVE.json is what `bench/snapshot_curve.py RUN --train-containing WORD --json` wrote.
+Each CURVE.json is what `bench/research/snapshot_curve.py RUN --train-containing WORD --json` wrote.
 A snapshot after U updates has shown each train example U / (batches per epoch) times,
 so the word has been seen n_word x U / (batches per epoch) times, where n_word is the
 number of train examples whose command has it (the "train:WORD" row's episodes), times the
@@ -116,15 +116,15 @@ def main() -> None:
                     help="passes over train of the paper's budget, for the closing lines")
     args = ap.parse_args()
     if args.png is not None and args.png.exists():
-        sys.exit(f"bench/kshot_exposures.py: {args.png} exists; give another path")
+        sys.exit(f"bench/research/kshot_exposures.py: {args.png} exists; give another path")
     runs: dict[str, list[dict]] = {}
     try:
         for path in args.curves:
             rows = curve_rows(json.loads(path.read_text()), args.word, args.split)
             runs[rows[0]["run"]] = rows
     except (OSError, ValueError, KeyError, StopIteration) as err:
-        sys.exit(f"bench/kshot_exposures.py: {err!r}" if isinstance(err, (KeyError, StopIteration)) else
-                 f"bench/kshot_exposures.py: {err}")
+        sys.exit(f"bench/research/kshot_exposures.py: {err!r}" if isinstance(err, (KeyError, StopIteration)) else
+                 f"bench/research/kshot_exposures.py: {err}")
     print(f"| run | k | updates | passes | exposures of '{args.word}' | {args.split}: TF acc. % / NLL | "
           f"own examples: TF acc. % / exact % | {args.split}: exact % |")
     print("|---|---:|---:|---:|---:|---:|---:|---:|")

@@ -1,6 +1,6 @@
 """Checkpoints side by side on every test split: closed-loop exact match on the same seeded episodes.
 
-    .venv/bin/python bench/compare_checkpoints.py --data DIR --checkpoint LABEL=CKPT [LABEL=CKPT ...]
+    .venv/bin/python bench/research/compare_checkpoints.py --data DIR --checkpoint LABEL=CKPT [LABEL=CKPT ...]
                                                   [--max-examples 1000] [--threads 1] [--splits ...]
 
 The fast recipe must be at least as good as the faithful one on every
@@ -49,7 +49,7 @@ def main() -> None:
         policies = [(label, Policy.from_checkpoint(path)) for label, path in args.checkpoint]
         episodes = select_test_episodes(args.data, args.splits, args.max_examples, args.seed)
     except (GscanError, OSError) as err:
-        sys.exit(f"bench/compare_checkpoints.py: {err}")
+        sys.exit(f"bench/research/compare_checkpoints.py: {err}")
     columns = []
     for label, policy in policies:
         start = time.time()

@@ -1,7 +1,7 @@
 """Split G, the adverb k-shot protocol (Ruis et al. 2020; docs/data.md, "Splits"):
 one model per k, exact match on adverb_1.
 
-    .venv/bin/python bench/kshot.py [--ks 1 5 10 50] [--updates 5000] [--parallel 2]
+    .venv/bin/python bench/research/kshot.py [--ks 1 5 10 50] [--updates 5000] [--parallel 2]
                                     [--eval-examples 10000] [--examples N | full]
 
 For each k, with the same seed, so the datasets differ only in which k "cautiously"

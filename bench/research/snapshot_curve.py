@@ -1,6 +1,6 @@
 """A run's learning curve on any test split, read from its snapshots (`step_<N>.pt`).
 
-    .venv/bin/python bench/snapshot_curve.py RUN_DIR --data DIR [--splits adverb_1 test]
+    .venv/bin/python bench/research/snapshot_curve.py RUN_DIR --data DIR [--splits adverb_1 test]
         [--max-examples 500] [--seed 0] [--threads 1] [--no-closed-loop] [--json FILE]
         [--train-containing cautiously]
 
@@ -43,7 +43,7 @@ def main() -> None:
     ap.add_argument("--json", type=Path, help="also write the rows here (refuses an existing file)")
     args = ap.parse_args()
     if args.json is not None and args.json.exists():
-        sys.exit(f"bench/snapshot_curve.py: {args.json} exists; give another path")
+        sys.exit(f"bench/research/snapshot_curve.py: {args.json} exists; give another path")
 
     from gscan_ros.data.io import select_test_episodes
     from gscan_ros.errors import GscanError
@@ -56,7 +56,7 @@ def main() -> None:
     configure_torch(args.threads)
     paths = snapshots(args.run)
     if not paths:
-        sys.exit(f"bench/snapshot_curve.py: no step_<N>.pt or last.pt in {args.run}")
+        sys.exit(f"bench/research/snapshot_curve.py: no step_<N>.pt or last.pt in {args.run}")
     by_split: dict[str, list] = {}
     try:
         policies = [Policy.from_checkpoint(p) for p in paths]
@@ -67,7 +67,7 @@ def main() -> None:
             if not by_split[f"train:{word}"]:
                 raise GscanError(f"no train command of {args.data} has {word!r}")
     except (GscanError, OSError) as err:
-        sys.exit(f"bench/snapshot_curve.py: {err}")
+        sys.exit(f"bench/research/snapshot_curve.py: {err}")
     stores = {split: EpisodeStore(eps, policies[0].parser) for split, eps in by_split.items()}
 
     rows = []

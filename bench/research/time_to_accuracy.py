@@ -1,6 +1,6 @@
 """Time to accuracy: train a config from scratch until a dev exact match target or a time limit.
 
-    .venv/bin/python bench/time_to_accuracy.py --config configs/semantic_fast.yaml \
+    .venv/bin/python bench/research/time_to_accuracy.py --config configs/semantic_fast.yaml \
         [--target 95] [--max-minutes 30] [--seed 0] [--threads 2] [--data DIR] \
         [--set key=value ...] [--out RUN_DIR] [--resume | --overwrite]
 

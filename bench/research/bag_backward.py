@@ -1,7 +1,7 @@
 """Training update time with the per-cell encoder's weight gradient from torch's
 embedding-bag backward vs `fast_ops.BagSum` (one sparse product).
 
-    .venv/bin/python bench/bag_backward.py --data data_gen/len_20k --config configs/length.yaml [--updates 12]
+    .venv/bin/python bench/research/bag_backward.py --data data_gen/len_20k --config configs/length.yaml [--updates 12]
 
 Both give the same gradient (tests/test_model_fastpaths.py). Every batch is trained twice,
 once per backward, in alternating order, so that both see the same batches and machine
@@ -11,10 +11,13 @@ per-cell bags are what training on grids of `PER_CELL_MIN_GRID` and wider uses (
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 import types
+from pathlib import Path
 
-from _data import training_update
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # bench/, for the benches' _data
+from _data import training_update  # noqa: E402
 
 
 def main() -> None:

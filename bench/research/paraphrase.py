@@ -1,6 +1,6 @@
 """Closed-loop exact match on paraphrased test commands next to the canonical ones.
 
-    .venv/bin/python bench/paraphrase.py [--checkpoint CKPT] [--data DIR] [--split test]
+    .venv/bin/python bench/research/paraphrase.py [--checkpoint CKPT] [--data DIR] [--split test]
                                          [--episodes 1000] [--seed 0] [--threads 2]
 
 Each command of the first `--episodes` episodes of `--split` is rewritten with
@@ -15,11 +15,14 @@ from __future__ import annotations
 
 import argparse
 import random
+import sys
 import time
 from collections import Counter
 from dataclasses import replace
+from pathlib import Path
 
-from _data import dataset_or_generated
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # bench/, for the benches' _data
+from _data import dataset_or_generated  # noqa: E402
 
 
 def main() -> None:

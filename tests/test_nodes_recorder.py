@@ -75,24 +75,27 @@ def test_a_preempted_episode_keeps_exactly_its_own_actions(probe, commander, che
     commander.create_subscription(String, "action", actions.append, EVENT_QOS)
     commands = commander.create_publisher(String, "command", EVENT_QOS)
     commander.spin_until(lambda: commands.get_subscription_count() >= 1, TIMEOUT, "the parser")
+    def started(text, after_ns):
+        """The policy reported an ACTIVE episode of `text` that it took after `after_ns`."""
+        return any((r := msg_to_episode_status(m)).outcome == es.ACTIVE and r.text == text and r.start_ns > after_ns
+                   for m in reports)
+
     rng = random.Random(5)
     for round_ in range(10):
+        sent = time.time_ns()
         commands.publish(String(data="walk to a red circle"))
+        commander.spin_until(lambda sent=sent: started("walk to a red circle", sent), TIMEOUT, f"round {round_}'s A")
         wanted = len(actions) + rng.randint(3, 15)
         commander.spin_until(lambda wanted=wanted: len(actions) >= wanted, TIMEOUT, f"round {round_}'s actions")
+        sent = time.time_ns()
         commands.publish(String(data="walk to a blue circle"))
         time.sleep(rng.uniform(0.001, 0.006))
         commands.publish(String(data="walk to a green circle"))
-    # The policy keeps only the newest graph: a B that C overtook is never started. Each
-    # round's A is preempted, and so is each C by the next round's A (the last by the
-    # commander's command, sent once the last C runs: it comes through another writer).
-    last = time.time_ns()
-
-    def reported(text, outcome=es.ACTIVE):
-        return any((r := msg_to_episode_status(m)).outcome == outcome and r.text == text and r.start_ns > last
-                   for m in reports)
-
-    commander.spin_until(lambda: reported("walk to a green circle"), TIMEOUT, "the last command followed")
+        # The policy keeps only the newest graph: a B that C overtook is never started.
+        commander.spin_until(lambda sent=sent: started("walk to a green circle", sent), TIMEOUT,
+                             f"round {round_}'s C")
+    # Each round's A is preempted, and so is each C: by the next round's A, the last one by
+    # the commander's command (sent once the last C runs: it comes through another writer).
     stack.policy_node.set_parameters(parameters(max_steps=2))
     final = commander.run_episode("walk to a circle", timeout=TIMEOUT)
     assert final.outcome is Outcome.MAX_STEPS, [(r.episode_id, r.outcome, r.text) for r in map(

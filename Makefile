@@ -35,9 +35,9 @@ $(STAMP): requirements.txt setup.py
 	$(PY) -m pip install -q --no-deps --no-build-isolation -e . 2>&1 | { grep -v "is ignored: it is neither" || true; }
 	touch $@
 
-# MKL's fast kernels on AMD CPUs for the runner's trainings (gscan_ros/model/runtime.py:
+# MKL's fast kernels on AMD CPUs for the runner's trainings (gscan_ros/runtime.py:
 # mkl_shim_env). Optional: without a C compiler MKL keeps its generic path.
-$(MKL_SHIM): gscan_ros/model/mkl_intel_cpu.c | $(STAMP)
+$(MKL_SHIM): gscan_ros/mkl_intel_cpu.c | $(STAMP)
 	cc -shared -fPIC -O2 -o $@ $< || echo "no C compiler: MKL keeps its generic path on AMD CPUs"
 
 $(WORDNET):

@@ -27,13 +27,14 @@ setup(
     python_requires=">=3.11",
     # What the package imports at run time, loosely (requirements.txt pins exact versions). rclpy and
     # the message packages come from ROS (package.xml), not from an index.
-    install_requires=["torch", "numpy", "nltk", "mcap", "zstandard", "lz4", "pyyaml", "tqdm", "matplotlib", "pillow"],
+    install_requires=["torch", "numpy", "nltk", "mcap", "zstandard", "lz4", "rosbags", "pyyaml", "tqdm", "matplotlib",
+                      "pillow"],
     zip_safe=True,
     maintainer="gscan_ros maintainers",
     description="gSCAN command following with compositional networks on ROS 2 Jazzy",
     license="MIT",
     # Imported only by tests/ (`pip install .[test]`); `tests_require` is gone from setuptools >= 72.
-    extras_require={"test": ["pytest", "hypothesis", "mcap-ros2-support", "rosbags"]},
+    extras_require={"test": ["pytest", "hypothesis", "mcap-ros2-support"]},
     entry_points={
         "console_scripts": [
             "gscan-ros = gscan_ros.cli:main",

@@ -6,6 +6,7 @@ situations are realistic. Run: `.venv/bin/python bench/bags.py [--episodes N] [-
 from __future__ import annotations
 
 import argparse
+import gc
 import itertools
 import tempfile
 import time
@@ -18,6 +19,9 @@ from gscan_ros.data.io import iter_episodes
 
 
 def timed(fn):
+    """(fn(), seconds), from a collected heap: a full garbage collection that the step
+    before provoked would otherwise land in this step's time."""
+    gc.collect()
     start = time.perf_counter()
     result = fn()
     return result, time.perf_counter() - start

@@ -28,7 +28,7 @@ def main() -> None:
     import numpy as np
     import torch
 
-    from gscan_ros.model.runtime import configure_torch
+    from gscan_ros.runtime import configure_torch
 
     configure_torch(args.threads)
     torch.manual_seed(0)

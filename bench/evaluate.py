@@ -26,7 +26,7 @@ import subprocess
 import time
 
 from gscan_ros.model.policy import MAX_STEPS
-from gscan_ros.model.runtime import DEVICES
+from gscan_ros.runtime import DEVICES
 
 from _data import dataset_or_generated, loopback_torchrun
 
@@ -37,7 +37,7 @@ def measure(args: argparse.Namespace, data: str) -> None:
 
     from gscan_ros.data.io import iter_episodes
     from gscan_ros.model.policy import Policy
-    from gscan_ros.model.runtime import configure_torch
+    from gscan_ros.runtime import configure_torch
     from gscan_ros.training.distributed import joined
     from gscan_ros.training.evaluate import evaluate_episodes
 

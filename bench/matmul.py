@@ -3,7 +3,7 @@
     .venv/bin/python bench/matmul.py [--threads 1] [--repeats 200]
 
 MKL runs a generic code path on CPUs that are not Intel's; `make setup` builds a shim
-that the experiment runner preloads on AMD CPUs (`gscan_ros.model.runtime.mkl_shim_env`,
+that the experiment runner preloads on AMD CPUs (`gscan_ros.runtime.mkl_shim_env`,
 docs/model.md "Performance (CPU)"). Each setting is measured in a child process started
 with or without the shim on LD_PRELOAD, on the shapes of the training update's
 projections (~3,000 states by 150 features) and one large square product. numpy's
@@ -56,7 +56,7 @@ def main() -> None:
     if args.child:
         print(json.dumps(measure(args.threads, args.repeats)))
         return
-    from gscan_ros.model.runtime import MKL_SHIM_SWITCH, mkl_shim_env
+    from gscan_ros.runtime import MKL_SHIM_SWITCH, mkl_shim_env
 
     plain = {**os.environ, MKL_SHIM_SWITCH: "0", "OPENBLAS_NUM_THREADS": str(args.threads)}
     plain.pop("LD_PRELOAD", None)

@@ -22,7 +22,7 @@ import subprocess
 import sys
 import time
 
-from gscan_ros.model.runtime import DEVICES, mkl_shim_env
+from gscan_ros.runtime import DEVICES, mkl_shim_env
 from gscan_ros.training.batches import BATCHING
 
 from _data import dataset_or_generated
@@ -37,7 +37,7 @@ def measure(data: str, mode: str, updates: int, warmup: int, threads: int, batch
     from gscan_ros.language.lexicon import Lexicon
     from gscan_ros.language.registry import get_parser
     from gscan_ros.model.checkpoint import checkpoint_lexicon, read_checkpoint, restore_model
-    from gscan_ros.model.runtime import configure_torch, mkl_shim_loaded, resolve_device
+    from gscan_ros.runtime import configure_torch, mkl_shim_loaded, resolve_device
     from gscan_ros.training.batches import EpisodeStore, batch_order
     from gscan_ros.training.config import TrainConfig
     from gscan_ros.training.step import TrainStep

@@ -1,22 +1,15 @@
 """Action <-> std_msgs/String carrying one gSCAN action token ("turn left", "<eos>", ...)."""
 from __future__ import annotations
 
-from std_msgs.msg import String
-
 from gscan_ros.world.types import Action
-from msg_adapters.cdr import cdr_to_msg
+from msg_adapters.text import cdr_to_text, text_to_cdr
 
 
-def action_to_msg(action: Action) -> String:
+def action_to_cdr(action: Action) -> bytes:
     """The dataset token of `action`; EOS is sent as "<eos>"."""
-    return String(data=Action(action).token)
-
-
-def msg_to_action(msg: String) -> Action:
-    """Parse the token; an unknown token raises InvalidActionError naming it."""
-    return Action.from_token(msg.data)
+    return text_to_cdr(Action(action).token)
 
 
 def cdr_to_action(data: bytes) -> Action:
-    """msg_to_action of a serialized std_msgs/String (a bag's `/action` record)."""
-    return msg_to_action(cdr_to_msg(data, String))
+    """Parse the token; an unknown token raises InvalidActionError naming it."""
+    return Action.from_token(cdr_to_text(data))

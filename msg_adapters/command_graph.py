@@ -1,20 +1,15 @@
 """CommandGraph <-> std_msgs/String carrying the graph's versioned JSON (topic `command_graph`)."""
 from __future__ import annotations
 
-from std_msgs.msg import String
-
 from gscan_ros.language.graph import CommandGraph
-from msg_adapters.errors import MessageFormatError
+from msg_adapters.text import cdr_to_text, text_to_cdr
 
 
-def graph_to_msg(graph: CommandGraph) -> String:
+def graph_to_cdr(graph: CommandGraph) -> bytes:
     """The compact JSON of `graph` (schema_version included)."""
-    return String(data=graph.to_json())
+    return text_to_cdr(graph.to_json())
 
 
-def msg_to_graph(msg: String) -> CommandGraph:
+def cdr_to_graph(data: bytes) -> CommandGraph:
     """Parse and validate; bad JSON or an invalid graph raises GraphError naming the problem."""
-    data = getattr(msg, "data", None)
-    if not isinstance(data, str):
-        raise MessageFormatError(f"expected a std_msgs/String with JSON data, got {type(msg).__name__}")
-    return CommandGraph.from_json(data)
+    return CommandGraph.from_json(cdr_to_text(data))

@@ -6,10 +6,11 @@ the time the world reached that state, `header.frame_id` the grid frame
 """
 from __future__ import annotations
 
-from builtin_interfaces.msg import Time
-from std_msgs.msg import Header
-
 from gscan_ros.interface import GRID_FRAME
+from msg_adapters.cdr import message_class
+
+Time = message_class("builtin_interfaces/msg/Time")
+Header = message_class("std_msgs/msg/Header")
 
 NS_PER_S = 1_000_000_000
 
@@ -22,6 +23,11 @@ def time_ns(stamp: Time) -> int:
     return stamp.sec * NS_PER_S + stamp.nanosec
 
 
+def make_header(t_ns: int = 0, frame_id: str = "") -> Header:
+    """A std_msgs/Header stamped `t_ns` in `frame_id` (by default: time 0, no frame, as ROS's default Header)."""
+    return Header(stamp=time_msg(t_ns), frame_id=frame_id)
+
+
 def grid_header(t_ns: int) -> Header:
     """The header of a message that shows the world state reached at `t_ns`."""
-    return Header(stamp=time_msg(t_ns), frame_id=GRID_FRAME)
+    return make_header(t_ns, GRID_FRAME)

@@ -11,58 +11,53 @@ from __future__ import annotations
 import struct
 
 import numpy as np
-from sensor_msgs.msg import Image
-from std_msgs.msg import Header, UInt8MultiArray
 
 from gscan_ros.interface import EARLIER_OBSERVATION_TYPE, OBSERVATION, OBSERVATION_ENCODING
 from gscan_ros.world.types import NUM_CHANNELS, SUPPORTED_GRID_SIZES
-from msg_adapters.cdr import PLAIN_ENCAPSULATIONS, cdr_to_msg
+from msg_adapters.cdr import PLAIN_ENCAPSULATIONS, cdr_to_msg, msg_to_cdr
 from msg_adapters.errors import MessageFormatError
+from msg_adapters.header import Header
 from msg_adapters.image import image_msg, image_pixels
 
 OBSERVATION_LABELS: tuple[str, ...] = ("row", "col", "channel")  # the earlier UInt8MultiArray layout
-_MSG_CLASSES = {OBSERVATION.type: Image, EARLIER_OBSERVATION_TYPE: UInt8MultiArray}
 # A serialized observation Image starts with the 4-byte CDR encapsulation, then its header
 # stamp (int32 sec, uint32 nanosec), then its frame_id (uint32 length, chars, NUL).
 _STAMP_END = 12
 MAX_LAYOUTS = 16  # layouts a decoder remembers (one per grid size and frame in practice)
 
 
-def observation_to_msg(observation: np.ndarray, *, header: Header | None = None) -> Image:
+def observation_to_cdr(observation: np.ndarray, *, header: Header | None = None) -> bytes:
     """The "8UC16" image of a uint8[row, col, channel] encoding (World.encode())."""
     array = np.asarray(observation)
     if array.dtype != np.uint8 or array.ndim != 3 or array.shape[2] != NUM_CHANNELS:
         raise MessageFormatError(f"observation must be a uint8[row, col, {NUM_CHANNELS}] array, "
                                  f"got {array.dtype}{list(array.shape)}")
-    return image_msg(array, OBSERVATION_ENCODING, header)
+    return msg_to_cdr(image_msg(array, OBSERVATION_ENCODING, header))
 
 
-def msg_to_observation(msg: Image | UInt8MultiArray, *, shape: tuple[int, ...] | None = None) -> np.ndarray:
-    """uint8[row, col, channel] view of an observation message; rejects any other layout.
+def cdr_to_observation(data: bytes, msg_type: str = OBSERVATION.type, *,
+                       shape: tuple[int, ...] | None = None) -> np.ndarray:
+    """uint8[row, col, channel] view of a serialized observation of `msg_type` (a bag's
+    `/observation` channel says which); rejects any other layout.
 
     The grid must be square, a supported size (4-16), with 16 channels; `shape` pins the
-    exact sizes instead. The result is read-only (it shares the message's buffer); copy
-    it to modify. A UInt8MultiArray is an observation of an earlier bag.
+    exact sizes instead. The result is a read-only view of the decoded bytes; copy it to
+    modify. A UInt8MultiArray is an observation of an earlier bag.
     """
-    if isinstance(msg, UInt8MultiArray):
-        return _array_observation(msg, shape)
-    if not isinstance(msg, Image):
-        raise MessageFormatError(f"expected a sensor_msgs/Image observation, got {type(msg).__name__}")
+    if msg_type == OBSERVATION.type:
+        return _image_observation(cdr_to_msg(data, msg_type), shape)
+    if msg_type == EARLIER_OBSERVATION_TYPE:
+        return _array_observation(cdr_to_msg(data, msg_type), shape)
+    raise MessageFormatError(f"an observation is a {OBSERVATION.type} (or, in earlier bags, a "
+                             f"{EARLIER_OBSERVATION_TYPE}), not a {msg_type}")
+
+
+def _image_observation(msg, shape: tuple[int, ...] | None) -> np.ndarray:
     _check_sizes((msg.height, msg.width, NUM_CHANNELS), shape)
     if msg.step != NUM_CHANNELS * msg.width:
         raise MessageFormatError(f"observation step must be {NUM_CHANNELS} * width = {NUM_CHANNELS * msg.width}, "
                                  f"got {msg.step}")
     return image_pixels(msg, OBSERVATION_ENCODING, NUM_CHANNELS)
-
-
-def cdr_to_observation(data: bytes, msg_type: str = OBSERVATION.type, *,
-                       shape: tuple[int, ...] | None = None) -> np.ndarray:
-    """msg_to_observation of a serialized `msg_type` message (a bag's `/observation` record)."""
-    msg_class = _MSG_CLASSES.get(msg_type)
-    if msg_class is None:
-        raise MessageFormatError(f"an observation is a {OBSERVATION.type} (or, in earlier bags, a "
-                                 f"{EARLIER_OBSERVATION_TYPE}), not a {msg_type}")
-    return msg_to_observation(cdr_to_msg(data, msg_class), shape=shape)
 
 
 class ObservationDecoder:
@@ -135,7 +130,7 @@ def _strides(shape: tuple[int, ...]) -> tuple[int, ...]:
     return tuple(int(np.prod(shape[i:])) for i in range(len(shape)))
 
 
-def _array_observation(msg: UInt8MultiArray, shape: tuple[int, ...] | None) -> np.ndarray:
+def _array_observation(msg, shape: tuple[int, ...] | None) -> np.ndarray:
     """The observation of an earlier bag's UInt8MultiArray (dims row, col, channel, row-major)."""
     dims = msg.layout.dim
     labels = tuple(d.label for d in dims)
@@ -150,7 +145,6 @@ def _array_observation(msg: UInt8MultiArray, shape: tuple[int, ...] | None) -> n
         )
     if msg.layout.data_offset != 0:
         raise MessageFormatError(f"observation data_offset must be 0, got {msg.layout.data_offset}")
-    data = np.frombuffer(msg.data, dtype=np.uint8)
-    if data.size != strides[0]:
-        raise MessageFormatError(f"observation data has {data.size} bytes, layout needs {strides[0]}")
-    return data.reshape(sizes)
+    if msg.data.size != strides[0]:
+        raise MessageFormatError(f"observation data has {msg.data.size} bytes, layout needs {strides[0]}")
+    return msg.data.reshape(sizes)

@@ -7,24 +7,20 @@ from __future__ import annotations
 
 import json
 
-from std_msgs.msg import String
-
 from gscan_ros.world.types import Situation
 from msg_adapters.errors import MessageFormatError
+from msg_adapters.text import cdr_to_text, text_to_cdr
 
 
-def situation_to_msg(situation: Situation) -> String:
+def situation_to_cdr(situation: Situation) -> bytes:
     """The situation's gSCAN JSON (as in dataset.txt)."""
-    return String(data=json.dumps(situation.to_json()))
+    return text_to_cdr(json.dumps(situation.to_json()))
 
 
-def msg_to_situation(msg: String) -> Situation:
+def cdr_to_situation(data: bytes) -> Situation:
     """Parse and validate; bad JSON raises MessageFormatError, a bad situation a GscanError naming the field."""
-    data = getattr(msg, "data", None)
-    if not isinstance(data, str):
-        raise MessageFormatError(f"expected a std_msgs/String with situation JSON, got {type(msg).__name__}")
     try:
-        fields = json.loads(data)
+        fields = json.loads(cdr_to_text(data))
     except json.JSONDecodeError as exc:
         raise MessageFormatError(f"situation is not JSON ({exc.msg} at position {exc.pos})") from None
     if not isinstance(fields, dict):

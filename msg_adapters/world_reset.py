@@ -5,19 +5,13 @@ published before it belongs to the previous world (docs/ros.md "Resets").
 """
 from __future__ import annotations
 
-from builtin_interfaces.msg import Time
-from std_msgs.msg import Header
-
-from msg_adapters.errors import MessageFormatError
-from msg_adapters.header import time_msg, time_ns
+from msg_adapters.cdr import cdr_to_msg, msg_to_cdr
+from msg_adapters.header import Header, make_header, time_ns
 
 
-def reset_to_msg(t_ns: int) -> Header:
-    return Header(stamp=time_msg(t_ns))
+def reset_to_cdr(t_ns: int) -> bytes:
+    return msg_to_cdr(make_header(t_ns))
 
 
-def msg_to_reset(msg: Header) -> int:
-    stamp = getattr(msg, "stamp", None)
-    if not isinstance(stamp, Time):
-        raise MessageFormatError(f"expected a std_msgs/Header with the reset time, got {type(msg).__name__}")
-    return time_ns(stamp)
+def cdr_to_reset(data: bytes) -> int:
+    return time_ns(cdr_to_msg(data, Header.__msgtype__).stamp)

@@ -17,9 +17,9 @@ from typing import Iterator
 
 import numpy as np
 from mcap.reader import make_reader
-from std_msgs.msg import MultiArrayDimension, String, UInt8MultiArray
 
 from gscan_ros import episode_status as es
+from gscan_ros import interface
 from gscan_ros.data.bag import EPISODE_PERIOD_NS, LIVE_SPLIT, STEP_NS, BagWriter, legacy_header
 from gscan_ros.data.bag_metadata import EPISODE_FORMAT_VERSION
 from gscan_ros.data.episode import Episode
@@ -27,14 +27,16 @@ from gscan_ros.language.graph import CommandGraph
 from gscan_ros.world.types import COLORS, SHAPES, Action, Heading, Position, Situation, WorldObject
 from gscan_ros.world.world import World
 from msg_adapters import (
-    action_to_msg,
-    episode_status_to_msg,
-    graph_to_msg,
+    action_to_cdr,
+    cdr_to_episode_status,
+    episode_status_to_cdr,
+    graph_to_cdr,
     grid_header,
-    msg_to_episode_status,
-    observation_to_msg,
-    situation_to_msg,
-    text_to_msg,
+    message_class,
+    msg_to_cdr,
+    observation_to_cdr,
+    situation_to_cdr,
+    text_to_cdr,
 )
 
 SPLITS = ("train", "test", "visual")
@@ -84,15 +86,21 @@ def make_episodes(count: int, seed: int = 0, max_len: int = 20) -> list[Episode]
     return [make_episode(rng, i, max_len) for i in range(count)]
 
 
-def earlier_observation_msg(observation: np.ndarray) -> UInt8MultiArray:
+def uint8_multi_array(dims: list[tuple[str, int, int]], data: np.ndarray) -> bytes:
+    """A serialized std_msgs/UInt8MultiArray of (label, size, stride) dims and uint8 `data`."""
+    layout = message_class("std_msgs/msg/MultiArrayLayout")
+    dimension = message_class("std_msgs/msg/MultiArrayDimension")
+    array = message_class(interface.EARLIER_OBSERVATION_TYPE)
+    return msg_to_cdr(array(layout=layout(dim=[dimension(label=label, size=size, stride=stride)
+                                               for label, size, stride in dims], data_offset=0),
+                            data=np.ascontiguousarray(data, dtype=np.uint8).reshape(-1)))
+
+
+def earlier_observation_cdr(observation: np.ndarray) -> bytes:
     """An observation as bags before the 8UC16 image held it: a UInt8MultiArray, dims row, col, channel."""
-    msg = UInt8MultiArray()
     rows, cols, channels = observation.shape
-    msg.layout.dim = [MultiArrayDimension(label="row", size=rows, stride=rows * cols * channels),
-                      MultiArrayDimension(label="col", size=cols, stride=cols * channels),
-                      MultiArrayDimension(label="channel", size=channels, stride=channels)]
-    msg.data = np.ascontiguousarray(observation).tobytes()
-    return msg
+    return uint8_multi_array([("row", rows, rows * cols * channels), ("col", cols, cols * channels),
+                              ("channel", channels, channels)], observation)
 
 
 # ------------------------------------------------------------------ format-1 bags by hand
@@ -118,12 +126,14 @@ def write_legacy_episode(writer: BagWriter, episode: Episode, episode_id: int, *
     if outcome is not None:
         header["outcome"] = outcome
     t0 = episode_id * EPISODE_PERIOD_NS
-    writer.write_message("/command", String(data=json.dumps(header)), t0)
+    writer.write_message("/command", interface.COMMAND.type, text_to_cdr(json.dumps(header)), t0)
     states = episode.states()
     for t, token in enumerate(tokens if tokens is not None else [*(a.token for a in episode.actions), "<eos>"]):
         if observations and t < len(states):
-            writer.write_message("/observation", earlier_observation_msg(states[t]), t0 + (t + 1) * STEP_NS)
-        writer.write_message("/action", String(data=token), t0 + (t + 1) * STEP_NS + STEP_NS // 2)
+            writer.write_message("/observation", interface.EARLIER_OBSERVATION_TYPE, earlier_observation_cdr(states[t]),
+                                 t0 + (t + 1) * STEP_NS)
+        writer.write_message("/action", interface.ACTION.type, text_to_cdr(token),
+                             t0 + (t + 1) * STEP_NS + STEP_NS // 2)
 
 
 # ------------------------------------------------------------ a live stack, recorded
@@ -141,11 +151,13 @@ class LiveStack:
         self.namespace = namespace
         self.policy = policy
         self.episodes = 0
-        self.messages: list[tuple[str, object, int, int]] = []  # (topic, message, publish ns, log delay)
+        # (topic, its type, CDR bytes, publish ns, log delay)
+        self.messages: list[tuple[str, str, bytes, int, int]] = []
 
-    def publish(self, topic: str, msg, *, late_ns: int = 0) -> None:
+    def publish(self, topic: str, data: bytes, *, late_ns: int = 0) -> None:
+        """Serialized `data` on the stack's `topic` (relative name), of the interface table's type."""
         self.now += self.step_ns
-        self.messages.append((f"{self.namespace}/{topic}", msg, self.now, late_ns))
+        self.messages.append((f"{self.namespace}/{topic}", interface.endpoint_of(topic).type, data, self.now, late_ns))
 
     def route(self, rng: random.Random, length: int) -> tuple[Action, ...]:
         """Random actions the world can take from where it is (walks stay on the grid)."""
@@ -155,37 +167,37 @@ class LiveStack:
     def state(self, *, situation: bool = True) -> None:
         """The world's state: its situation (unless the recorder missed it), then its observation."""
         if situation:
-            self.publish("situation", situation_to_msg(self.world.snapshot()))
+            self.publish("situation", situation_to_cdr(self.world.snapshot()))
         header = grid_header(self.now + self.step_ns)  # stamped as published
-        self.publish("observation", observation_to_msg(self.world.encode(), header=header))
+        self.publish("observation", observation_to_cdr(self.world.encode(), header=header))
 
     def command(self, typed: str, graph: CommandGraph | None = None) -> None:
         """A command typed as plain text, and the graph the parser made of it."""
-        self.publish("command", text_to_msg(typed))
+        self.publish("command", text_to_cdr(typed))
         if graph is not None:
-            self.publish("command_graph", graph_to_msg(graph))
+            self.publish("command_graph", graph_to_cdr(graph))
 
     def start(self) -> es.EpisodeStatus:
         self.episodes += 1
         report = es.EpisodeStatus(f"{self.policy}/{self.episodes}", self.now + self.step_ns, es.ACTIVE, "")
-        self.publish("episode_status", episode_status_to_msg(report))
+        self.publish("episode_status", episode_status_to_cdr(report))
         return report
 
     def act(self, action: Action, *, situation: bool = True, late_ns: int = 0) -> None:
         """The policy's action and, but for `<eos>`, the world's new state."""
-        self.publish("action", action_to_msg(action), late_ns=late_ns)
+        self.publish("action", action_to_cdr(action), late_ns=late_ns)
         if action is not Action.EOS:
             self.world.step(action)
             self.state(situation=situation)
 
     def end(self, report: es.EpisodeStatus, outcome: str) -> None:
-        self.publish("episode_status", episode_status_to_msg(replace(report, outcome=outcome)))
+        self.publish("episode_status", episode_status_to_cdr(replace(report, outcome=outcome)))
 
     def reject(self) -> None:
         """The policy refuses the newest command graph: no episode starts."""
         self.episodes += 1
         report = es.EpisodeStatus(f"{self.policy}/{self.episodes}", self.now + self.step_ns, es.REJECTED, "refused")
-        self.publish("episode_status", episode_status_to_msg(report))
+        self.publish("episode_status", episode_status_to_cdr(report))
 
     def episode(self, actions, outcome: str = es.COMPLETE, *, situations: bool = True) -> es.EpisodeStatus:
         """The policy follows the newest command: ACTIVE, the actions, `<eos>` unless
@@ -203,19 +215,20 @@ class LiveStack:
         publication), with its publish time; as our recorder does (an `/episode` record when
         an episode starts, the ended ones counted), or as an all-topics recorder (`ros2 bag
         record -a`) does (`recorder=False`)."""
-        arrivals = sorted((publish_ns + late_ns, publish_ns, topic, msg)
-                          for topic, msg, publish_ns, late_ns in self.messages)
-        for log_ns, publish_ns, topic, msg in arrivals:
-            writer.write_message(topic, msg, log_ns, publish_ns)
+        arrivals = sorted((publish_ns + late_ns, publish_ns, topic, msg_type, data)
+                          for topic, msg_type, data, publish_ns, late_ns in self.messages)
+        for log_ns, publish_ns, topic, msg_type, data in arrivals:
+            writer.write_message(topic, msg_type, data, log_ns, publish_ns)
             if not recorder or not topic.endswith("/episode_status"):
                 continue
-            report = msg_to_episode_status(msg)
+            report = cdr_to_episode_status(data)
             if report.outcome != es.ACTIVE:
                 writer.count_episode(LIVE_SPLIT if report.outcome == es.COMPLETE else None)
             else:
                 record = {"version": EPISODE_FORMAT_VERSION, "id": report.episode_id, "split": LIVE_SPLIT,
                           "meta": {"recorded_by": "/episode_recorder_node"}}
-                writer.write_message("/episode", text_to_msg(json.dumps(record)), log_ns + 1, publish_ns)
+                writer.write_message("/episode", interface.EPISODE.type, text_to_cdr(json.dumps(record)), log_ns + 1,
+                                     publish_ns)
 
 
 # ------------------------------------------------------------------------ damaged bags

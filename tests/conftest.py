@@ -24,7 +24,7 @@ os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 
 @pytest.fixture(scope="session")
 def tiny_dataset(tmp_path_factory):
-    """A 300-candidate generated compositional dataset (seed 0), shared by the training tests."""
+    """A generated compositional dataset of at most 300 examples (seed 0), shared by the training tests."""
     from gscan_ros.cli import main
 
     out = tmp_path_factory.mktemp("tiny_data")

@@ -11,7 +11,8 @@ from gscan_ros.language import all_commands, get_parser
 from gscan_ros.language.graph import CommandGraph, GraphEdge, GraphNode
 from gscan_ros.language.lexicon import Lexicon
 from gscan_ros.model.checkpoint import checkpoint_dict, save_checkpoint
-from gscan_ros.model.compositional import CompositionalNetwork, ModelConfig
+from gscan_ros.model.compositional import CompositionalNetwork
+from gscan_ros.model.config import ModelConfig
 from gscan_ros.model.modules import ModuleSpec, ModuleTable
 
 SIZE_KEY = "big|small"

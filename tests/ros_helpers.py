@@ -47,11 +47,12 @@ class Probe:
         self.received: dict[str, list] = defaultdict(list)
         self.created_ns = time.time_ns()  # messages published before belong to earlier tests
 
-    def record(self, topic: str, msg_type, qos, since_ns: int | None = None) -> list:
+    def record(self, topic: str, msg_type, qos, since_ns: int | None = None, *, raw: bool = False) -> list:
         """Subscribe and keep the messages of `topic` in `self.received[topic]` that were
         published at or after `since_ns` (source timestamp, ns), by default the probe's
-        creation. In a shared domain a participant still shutting down from an earlier test
-        can serve its older latched samples to a new subscription; they are not this test's."""
+        creation; `raw` keeps their CDR bytes, for msg_adapters to decode. In a shared domain
+        a participant still shutting down from an earlier test can serve its older latched
+        samples to a new subscription; they are not this test's."""
         kept = self.received[topic]
         since_ns = self.created_ns if since_ns is None else since_ns
 
@@ -59,7 +60,7 @@ class Probe:
             if info["source_timestamp"] >= since_ns:
                 kept.append(msg)
 
-        self.node.create_subscription(msg_type, topic, keep_recent, qos)
+        self.node.create_subscription(msg_type, topic, keep_recent, qos, raw=raw)
         return kept
 
     def spin_until(self, predicate: Callable[[], bool], timeout: float = TIMEOUT, what: str = "condition") -> None:

@@ -6,7 +6,6 @@ import random
 import numpy as np
 import pytest
 from mcap.reader import make_reader
-from std_msgs.msg import String
 
 from gscan_ros import episode_status as es
 from gscan_ros.data.bag import LIVE_SPLIT, BagEpisodeReader, BagWriter, iter_bag_episodes, read_bag_info, write_bag
@@ -14,6 +13,7 @@ from gscan_ros.data.episode import Episode
 from gscan_ros.errors import DatasetFormatError
 from gscan_ros.language import get_parser
 from gscan_ros.world.types import Action
+from msg_adapters import text_to_cdr
 
 from bag_support import LiveStack, make_episodes, mcap_file
 
@@ -55,7 +55,7 @@ def test_live_recording_with_real_times(tmp_path):
     report = stack.start()
     for action in episode.actions:
         stack.act(action)
-        stack.publish("status", String(data="stepping"))
+        stack.publish("status", text_to_cdr("stepping"))
     stack.act(Action.EOS)
     stack.end(report, es.COMPLETE)
     bag = _record(stack, tmp_path / "live")
@@ -72,7 +72,7 @@ def test_live_recording_with_real_times(tmp_path):
     assert reader.report.outcomes == {"rejected": 1} and reader.report.episodes_read == 1
     assert reader.report.complete and reader.report.drop_reasons == {}
     info = read_bag_info(bag)
-    assert info.start_ns == stack.messages[0][2] and info.episodes == 2 and info.splits == {LIVE_SPLIT: 1}
+    assert info.start_ns == stack.messages[0][3] and info.episodes == 2 and info.splits == {LIVE_SPLIT: 1}
     assert info.topics["/status"].msg_type == "std_msgs/msg/String"
 
 
@@ -218,7 +218,7 @@ def test_unknown_action_token_names_bag_topic_and_time(tmp_path):
     stack.state()
     stack.command("walk to a red circle")
     stack.start()
-    stack.publish("action", String(data="jump"))
+    stack.publish("action", text_to_cdr("jump"))
     bag = _record(stack, tmp_path / "tok")
     with pytest.raises(DatasetFormatError, match=rf"^{bag}: action at {stack.now} ns: unknown action 'jump'"):
         list(iter_bag_episodes(bag))

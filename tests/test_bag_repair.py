@@ -9,13 +9,14 @@ from actionlib_msgs.msg import GoalStatus
 from mcap.reader import make_reader
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
-from std_msgs.msg import String
 
+from gscan_ros import interface
 from gscan_ros.cli import main
 from gscan_ros.data.bag import EPISODE_PERIOD_NS, STEP_NS, BagWriter, iter_bag_episodes, read_bag_info, repair_bag
 from gscan_ros.data.bag_report import BagReadReport
 from gscan_ros.data.bag_scan import LOSS, McapScan
 from gscan_ros.errors import DatasetFormatError
+from msg_adapters import text_to_cdr
 
 from bag_support import (
     copy_bag,
@@ -46,19 +47,27 @@ def intact(tmp_path_factory, episodes):
     with BagWriter(bag, chunk_size=4096) as writer:
         for i, episode in enumerate(episodes):
             end = writer.write_episode(episode)
-            writer.write_message("/status", String(data=f"episode {i} done"), end + 100)
+            writer.write_message("/status", interface.STATUS.type, text_to_cdr(f"episode {i} done"), end + 100)
     return bag
 
 
-def _flip_middle_chunk(data: bytearray) -> None:
-    data[len(data) // 4] ^= 0xFF
+def _flipped(bag, dst):
+    """A copy of `bag` with a byte flipped in the compressed data of the chunk a quarter into it."""
+    with open(mcap_file(bag), "rb") as f:
+        chunks = make_reader(f).get_summary().chunk_indexes
+    chunk = chunks[len(chunks) // 4]
+
+    def flip(data: bytearray) -> None:
+        data[chunk.chunk_start_offset + chunk.chunk_length // 2] ^= 0xFF
+
+    return damaged_copy(bag, dst, flip)
 
 
 def _damaged(kind, intact, tmp_path):
     if kind == "truncated":
         return truncated_copy(intact, tmp_path / "cut", int(data_end(intact) * 0.6))
     if kind == "flipped byte":
-        return damaged_copy(intact, tmp_path / "flip", _flip_middle_chunk)
+        return _flipped(intact, tmp_path / "flip")
     bag = tmp_path / "killed"
     kill_writer(bag)
     return bag
@@ -202,7 +211,7 @@ def test_repair_refuses_to_replace_what_it_should_not(intact, tmp_path):
 
 
 def test_cli_bag_repair(intact, tmp_path, capsys):
-    source = damaged_copy(intact, tmp_path / "flip", _flip_middle_chunk)
+    source = _flipped(intact, tmp_path / "flip")
     assert main(["bag", "repair", str(source), "--out", str(tmp_path / "new")]) == 0
     out = capsys.readouterr().out
     assert "read" in out and "corrupt" in out

@@ -72,7 +72,8 @@ def test_replay_end_to_end_with_a_real_checkpoint(tmp_path, capsys):
     from gscan_ros.language import all_commands, get_parser
     from gscan_ros.language.lexicon import Lexicon
     from gscan_ros.model.checkpoint import checkpoint_dict, save_checkpoint
-    from gscan_ros.model.compositional import CompositionalNetwork, ModelConfig
+    from gscan_ros.model.compositional import CompositionalNetwork
+    from gscan_ros.model.config import ModelConfig
     from gscan_ros.model.modules import ModuleTable
 
     torch.manual_seed(0)

@@ -1,5 +1,8 @@
-"""Interoperability: the third-party `rosbags` reader opens our bags and decodes every message."""
+"""Interoperability: the third-party `rosbags` reader opens our bags and decodes every message,
+and the schemas and type hashes our bags record are those of ROS's installed definitions."""
+import importlib
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -9,7 +12,9 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from gscan_ros.data.bag import write_bag
 from gscan_ros.data.bag_format import ACTION_DELAY_NS, EPISODE_PERIOD_NS, PROLOGUE_NS, STEP_NS
-from gscan_ros.data.bag_schema import TOPICS, message_definition
+from gscan_ros.data.bag_schema import TOPICS
+from gscan_ros.interface import EARLIER_OBSERVATION_TYPE
+from msg_adapters import message_definition, type_hash
 
 from bag_support import make_episodes
 
@@ -86,11 +91,28 @@ def test_rosbags_decodes_the_recorded_values(recorded):
     assert actions == [tok for e in episodes for tok in [a.token for a in e.actions] + ["<eos>"]]
 
 
-@pytest.mark.parametrize("topic", sorted(TOPICS))
-def test_schema_text_matches_the_rosbags_type_definitions(topic):
-    """Our ros2msg text (read from the installed .msg files) parses to the same types as rosbags'."""
-    msg_type = TOPICS[topic].msg_type
+BAG_TYPES = sorted({t.msg_type for t in TOPICS.values()} | {EARLIER_OBSERVATION_TYPE})
+
+
+def installed_definition(msg_type: str, suffix: str) -> str:
+    """The `.msg` (or `.json` type description) that ROS installs for "pkg/msg/Type", in
+    <prefix>/share/<pkg>/msg beside <prefix>/lib/pythonX.Y/site-packages/<pkg>."""
+    package, _, name = msg_type.split("/")
+    prefix = Path(importlib.import_module(package).__file__).resolve().parents[4]
+    return (prefix / "share" / package / "msg" / f"{name}{suffix}").read_text(encoding="utf-8")
+
+
+@pytest.mark.parametrize("msg_type", BAG_TYPES)
+def test_schema_text_has_the_fields_and_constants_of_the_installed_definitions(msg_type):
+    """Our ros2msg text (rosbags' type store) parses to what ROS's own .msg files say, nested types included."""
     parsed = get_types_from_msg(message_definition(msg_type), msg_type)
-    for name, (_consts, fields) in parsed.items():
-        reference = TYPESTORE.fielddefs[name]
-        assert [f[0] for f in fields] == [f[0] for f in reference[1]], name
+    assert msg_type in parsed
+    for name, definition in parsed.items():
+        assert definition == get_types_from_msg(installed_definition(name, ".msg"), name)[name], name
+
+
+@pytest.mark.parametrize("msg_type", BAG_TYPES)
+def test_type_hash_is_the_installed_one(msg_type):
+    description = json.loads(installed_definition(msg_type, ".json"))
+    [expected] = [h["hash_string"] for h in description["type_hashes"] if h["type_name"] == msg_type]
+    assert type_hash(msg_type) == expected

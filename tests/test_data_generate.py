@@ -1,13 +1,16 @@
 """Dataset generation end to end: sampling rules, splits, determinism, CLIs."""
 import json
-from collections import Counter
+from collections import Counter, defaultdict
+from dataclasses import replace
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from gscan_ros.cli import main
 from gscan_ros.data.commands import parse_command
-from gscan_ros.data.dataset import iter_examples, read_header
+from gscan_ros.data.dataset import iter_examples, iter_raw_examples, read_header
 from gscan_ros.data.generate import GenerationConfig, generate_dataset
 from gscan_ros.data.sampling import (
     ALL_OBJECTS,
@@ -22,6 +25,10 @@ from gscan_ros.errors import GscanError
 from gscan_ros.world import resolve_target
 
 N = 2500
+# The smallest world (4x4, one layout per direction and distance): a full set in seconds.
+SMALL_WORLD = {"grid_size": 4, "num_resampling": 1}
+# Its length split with a cut-off that 4x4 targets exceed, so every split has examples.
+SMALL_LENGTH = {"split_kind": "length", "cut_off_target_length": 6, **SMALL_WORLD}
 
 
 @pytest.fixture(scope="module")
@@ -133,7 +140,7 @@ def test_cli_generate_then_verify_reports_no_mismatch(tmp_path, capsys):
 
 
 def test_cli_verify_reports_a_wrong_target(tmp_path, capsys):
-    generate_dataset(tmp_path, GenerationConfig(seed=4, max_examples=50))
+    report = generate_dataset(tmp_path, GenerationConfig(seed=4, max_examples=50))
     data = json.loads((tmp_path / "dataset.txt").read_text())
     example = data["examples"]["train"][0]
     example["target_commands"] = "stay," + example["target_commands"]
@@ -141,7 +148,7 @@ def test_cli_verify_reports_a_wrong_target(tmp_path, capsys):
     assert main(["verify", str(tmp_path), "--quiet"]) == 1
     out = capsys.readouterr().out
     assert "MISMATCH example 0 of split 'train'" in out and "differs at step 0" in out
-    assert "verified 50 examples: 1 mismatch(es)" in out
+    assert f"verified {sum(report.split_sizes.values())} examples: 1 mismatch(es)" in out
 
 
 def test_cli_errors_are_one_line(tmp_path, capsys):
@@ -245,12 +252,80 @@ def test_generate_overwrite_keeps_foreign_files_in_a_split_bag(tmp_path, capsys)
 
 
 def test_k_shot_beyond_the_adverb_1_examples_is_refused_naming_the_maximum(tmp_path):
-    config = GenerationConfig(seed=1, max_examples=200, k_shot=100_000)
+    """The maximum is the full set's adverb_1 count, a subset's too; a subset of K
+    examples is then the K k-shot examples, all in train."""
+    config = GenerationConfig(seed=1, k_shot=1_000_000, **SMALL_WORLD)
     with pytest.raises(GscanError, match=r"--k-shot must be in \[0, \d+\]") as error:
         generate_dataset(tmp_path / "out", config)
     assert not (tmp_path / "out").exists()
     maximum = int(str(error.value).split("[0, ")[1].split("]")[0])
-    report = generate_dataset(tmp_path / "out", GenerationConfig(seed=1, max_examples=200, k_shot=maximum))
+    report = generate_dataset(tmp_path / "out", replace(config, max_examples=maximum, k_shot=maximum))
     header = read_header(report.path).extra["gscan_ros"]
-    assert maximum > 0 and report.split_sizes["adverb_1"] == 0
+    assert maximum > 0 and report.split_sizes["train"] == maximum and sum(report.split_sizes.values()) == maximum
     assert header["config"]["k_shot"] == len(header["k_shot_train_indices"]) == maximum
+
+
+def test_a_subset_smaller_than_k_shot_is_refused(tmp_path):
+    with pytest.raises(GscanError, match="--examples must be at least --k-shot"):
+        generate_dataset(tmp_path / "out", GenerationConfig(seed=1, max_examples=2, k_shot=3))
+    assert not (tmp_path / "out").exists()
+
+
+def _examples_by_split(path) -> dict[str, list[str]]:
+    """Each split's examples as canonical JSON texts, in file order."""
+    out = defaultdict(list)
+    for split, _, raw in iter_raw_examples(path):
+        out[split].append(json.dumps(raw, sort_keys=True))
+    return out
+
+
+def _assert_sample_of_each_split(subset, full_examples: dict[str, list[str]]) -> dict[str, list[str]]:
+    """Every example of `subset` is one of the full set's in the same split, in the full
+    set's order; returns the subset's examples."""
+    examples = _examples_by_split(subset)
+    for split, texts in examples.items():
+        remaining = iter(full_examples[split])
+        assert all(text in remaining for text in texts), f"{split}: not a subsequence of the full set's {split}"
+    return examples
+
+
+@pytest.fixture(scope="module")
+def full_length_sets(tmp_path_factory):
+    """Per seed: the full set's report and its examples by split."""
+    root = tmp_path_factory.mktemp("full_length")
+    reports = {seed: generate_dataset(root / str(seed), GenerationConfig(seed=seed, **SMALL_LENGTH)) for seed in (0, 1)}
+    return {seed: (report, _examples_by_split(report.path)) for seed, report in reports.items()}
+
+
+@pytest.mark.slow
+@settings(max_examples=5)
+@given(seed=st.sampled_from([0, 1]), size=st.integers(1, 25_000))
+def test_a_subset_is_a_sample_of_each_split_of_the_same_seed_full_set(full_length_sets, tmp_path_factory,
+                                                                       seed, size):
+    """Same examples, same split, same bytes, splits in proportion, the same subset
+    again for (seed, N) whatever the worker count."""
+    full, full_examples = full_length_sets[seed]
+    out = tmp_path_factory.mktemp("subset")
+    subset = generate_dataset(out / "one", GenerationConfig(seed=seed, max_examples=size, **SMALL_LENGTH))
+    _assert_sample_of_each_split(subset.path, full_examples)
+    again = generate_dataset(out / "two", GenerationConfig(seed=seed, max_examples=size, **SMALL_LENGTH), workers=2)
+    assert again.path.read_bytes() == subset.path.read_bytes()
+    drawn = dict(full.split_sizes, test=full.split_sizes["test"] + full.discarded_equivalent)  # before de-duplication
+    total = sum(drawn.values())
+    for split, n in subset.split_sizes.items():
+        quota = size * drawn[split] / total if size < total else drawn[split]
+        assert (n <= quota + 1) if split == "test" else abs(n - quota) < 1, split
+
+
+@pytest.mark.slow
+def test_a_compositional_subset_keeps_the_full_sets_splits_and_k_shot_examples(tmp_path):
+    config = GenerationConfig(seed=2, k_shot=3, **SMALL_WORLD)
+    full = generate_dataset(tmp_path / "full", config)
+    subset = generate_dataset(tmp_path / "subset", replace(config, max_examples=500))
+    full_examples = _examples_by_split(full.path)
+    train = _assert_sample_of_each_split(subset.path, full_examples)["train"]
+    assert set(subset.split_sizes) == set(full.split_sizes) and subset.split_sizes["test"] > 0
+    assert train[-3:] == full_examples["train"][-3:]  # the full set's k-shot examples, last
+    assert sum("cautiously" in json.loads(text)["command"] for text in train) == 3
+    header = read_header(subset.path).extra["gscan_ros"]
+    assert header["k_shot_train_indices"] == list(range(len(train) - 3, len(train)))

@@ -1,6 +1,8 @@
 """Hold-out rules B-H and the split set operations (Ruis et al. 2020; docs/data.md)."""
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from gscan_ros.data.commands import parse_command
 from gscan_ros.data.generate import _DROPPED, GenerationConfig, _labels
@@ -11,6 +13,7 @@ from gscan_ros.data.splits import (
     assign_length,
     discard_equivalent,
     held_out_splits,
+    sample_splits,
     take_fraction,
 )
 from gscan_ros.world.types import Position
@@ -99,3 +102,23 @@ def test_assign_length_cut_off():
     for split in ("train", "dev", "test"):
         assert (lengths[result.splits[split]] <= 15).all()
     assert len(result.splits["test"]) == int((1 - 0.8) * 120)
+
+
+@given(seed=st.integers(0, 2**32 - 1), size=st.integers(3, 1100), k_shot=st.integers(0, 3))
+def test_sample_splits_draws_each_split_in_proportion(seed, size, k_shot):
+    labels = np.array([0] * 1000 + [SPLIT_NAMES.index("adverb_1")] * 50 + [SPLIT_NAMES.index("visual")] * 7)
+    full = assign_compositional(np.random.default_rng(seed), labels, np.arange(len(labels), dtype=np.uint64),
+                                0.9, 0.01, k_shot)
+    subset = sample_splits(np.random.default_rng([seed, 1]), full, size)
+    again = sample_splits(np.random.default_rng([seed, 1]), full, size)
+    assert all(np.array_equal(subset.splits[s], again.splits[s]) for s in full.splits)
+    total = sum(len(v) for v in full.splits.values())
+    assert sum(len(v) for v in subset.splits.values()) == min(size, total)
+    train = subset.splits["train"]
+    assert train[len(train) - k_shot:].tolist() == list(full.k_shot) and subset.k_shot == full.k_shot
+    for name, indices in subset.splits.items():
+        members = full.splits[name]
+        assert np.array_equal(indices, members[np.isin(members, indices)]), name  # a subsequence of its split
+        shared = len(members) - (k_shot if name == "train" else 0)
+        quota = (size - k_shot) * shared / (total - k_shot) if size < total else shared
+        assert abs(len(indices) - (k_shot if name == "train" else 0) - quota) < 1, name

@@ -14,7 +14,7 @@ import torch
 from gscan_ros.cli import main
 from gscan_ros.errors import GscanError
 from gscan_ros.model.checkpoint import read_checkpoint
-from gscan_ros.model.runtime import resolve_device
+from gscan_ros.runtime import resolve_device
 from gscan_ros.training.distributed import Ranks, shard_batch
 
 pytestmark = pytest.mark.slow

@@ -19,7 +19,7 @@ from gscan_ros.nodes.common import EVENT_QOS, LATCHED_LOG_QOS
 from gscan_ros.nodes.episode_recorder_node import READY_LOG
 from gscan_ros.world import World
 from gscan_ros.world.types import Action
-from msg_adapters import msg_to_graph
+from msg_adapters import cdr_to_graph
 
 from model_support import tiny_checkpoint
 from ros_helpers import STARTUP_TIMEOUT, NodeProcess, Probe, fresh_domain_id, ros_env
@@ -45,7 +45,7 @@ class Stack:
         self.probe = Probe(int(self.env["ROS_DOMAIN_ID"]))
         self.actions = self.probe.record("action", String, EVENT_QOS)
         self.status = self.probe.record("status", String, EVENT_QOS)
-        self.graphs = self.probe.record("command_graph", String, LATCHED_LOG_QOS)
+        self.graphs = self.probe.record("command_graph", String, LATCHED_LOG_QOS, raw=True)
         self.commands = self.probe.node.create_publisher(String, "command", EVENT_QOS)
         self.action_pub = self.probe.node.create_publisher(String, "action", EVENT_QOS)
         self.commander = GscanCommander(context=self.probe.context)
@@ -117,7 +117,7 @@ def test_episode_runs_in_lock_step_until_eos(stack, episode):
     command, actions = episode
     assert actions[-1] is Action.EOS and Action.EOS not in actions[:-1]
     assert 1 <= len(actions) <= MAX_STEPS + 1
-    assert stack.graphs and msg_to_graph(stack.graphs[-1]).command == command
+    assert stack.graphs and cdr_to_graph(stack.graphs[-1]).command == command
     stack.probe.spin_until(lambda: stack.lines(f"world_simulator_node: episode ended after {len(actions) - 1} actions"),
                            what="the world's episode end")
 

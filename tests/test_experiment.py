@@ -16,19 +16,13 @@ from gscan_ros.cli import main
 from gscan_ros.cli.args import available_cpus
 from gscan_ros.data.dataset import read_header
 from gscan_ros.data.io import DATASET_MANIFEST
-from gscan_ros.model.runtime import MKL_SHIM, mkl_shim_env
+from gscan_ros.experiments.paper_figures import TABLE1, TABLE2
+from gscan_ros.experiments.plan import DataRecipe, PlanError, load_plan, resolve_config
+from gscan_ros.experiments.runner import Runner, augment_base
+from gscan_ros.experiments.state import RunState, config_changes, work_order
 from gscan_ros.outputs import PARTIAL
-from gscan_ros.training.experiment import (
-    DataRecipe,
-    Runner,
-    RunState,
-    augment_base,
-    load_plan,
-    resolve_config,
-    work_order,
-)
+from gscan_ros.runtime import MKL_SHIM, mkl_shim_env
 from gscan_ros.training.failures import FAILURE_KINDS
-from gscan_ros.training.paper_figures import TABLE1, TABLE2
 
 REPO = Path(__file__).resolve().parents[1]
 TINY = {"max_updates": 2, "batch_size": 16, "validate_every": 2, "checkpoint_every": 2, "log_every": 1,
@@ -295,8 +289,6 @@ def test_work_order_finishes_trained_runs_before_training_others(tmp_path):
 
 
 def test_only_selects_entries_or_runs_and_names_unknown_ones():
-    from gscan_ros.training.experiment import PlanError
-
     plan = load_plan(REPO / "configs/experiments/paper.yaml")
     assert [r.name for r in plan.share(None, ("semantic_len15", "seq2seq_s0"))] == [
         "semantic_len15_s0", "semantic_len15_s1", "semantic_len15_s2", "seq2seq_s0"]
@@ -308,8 +300,6 @@ def test_only_selects_entries_or_runs_and_names_unknown_ones():
 
 
 def test_first_takes_the_runs_it_names_before_the_seed_rounds(tmp_path):
-    from gscan_ros.training.experiment import PlanError
-
     entries = [{"name": name, "config": str(REPO / "configs/semantic.yaml"), "data": "tiny", "seeds": [0, 1, 2],
                 "splits": SPLITS} for name in ("a", "b")]
     path = write_plan(tmp_path / "plan.yaml", tmp_path, runs=entries)
@@ -559,7 +549,6 @@ def test_paper_figures_match_the_tex():
 ])
 def test_more_screen_candidates_leave_a_run_whose_screen_passed_alone(tmp_path, screens, new_count, stale):
     from gscan_ros.training.config import TrainConfig
-    from gscan_ros.training.experiment import config_changes
 
     old = TrainConfig(screen_seeds=len(screens), screen_updates=10, max_updates=100)
     (tmp_path / "config.yaml").write_text(yaml.safe_dump(old.to_dict()))
@@ -567,3 +556,16 @@ def test_more_screen_candidates_leave_a_run_whose_screen_passed_alone(tmp_path, 
         json.dumps({"event": "screen", "candidate": k, "passed": ok}) + "\n" for k, ok in screens))
     new = TrainConfig(screen_seeds=new_count, screen_updates=10, max_updates=100)
     assert (config_changes(tmp_path, new) == ["screen_seeds"]) is stale
+
+
+@pytest.mark.parametrize("plan_value, changed", [(0, []), (14, ["max_dev_target_length"])])
+def test_a_field_added_since_a_run_started_counts_as_its_default(tmp_path, plan_value, changed):
+    """A config.yaml written before `max_dev_target_length` existed validated on all of dev:
+    the plan asking for the default keeps the run, asking for a cut makes it stale."""
+    from gscan_ros.training.config import TrainConfig
+
+    saved = TrainConfig(max_train_target_length=14).to_dict()
+    del saved["max_dev_target_length"]
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump(saved))
+    plan = TrainConfig(max_train_target_length=14, max_dev_target_length=plan_value)
+    assert config_changes(tmp_path, plan) == changed

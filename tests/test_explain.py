@@ -12,11 +12,7 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 from PIL import Image  # noqa: E402
 
-from gscan_ros.cli import main  # noqa: E402
-from gscan_ros.data.sources import sample_episode  # noqa: E402
-from gscan_ros.language import get_parser  # noqa: E402
-from gscan_ros.model.policy import Policy  # noqa: E402
-from gscan_ros.training.explain import (  # noqa: E402
+from gscan_ros.analysis.explain import (  # noqa: E402
     Reading,
     noun_colours,
     noun_colours_table,
@@ -34,7 +30,11 @@ from gscan_ros.training.explain import (  # noqa: E402
     weakest_colour,
     with_referent,
 )
-from gscan_ros.training.figures import DPI, TREE_LEVEL_IN, panel_titles, step_figure  # noqa: E402
+from gscan_ros.analysis.figures import DPI, TREE_LEVEL_IN, panel_titles, step_figure  # noqa: E402
+from gscan_ros.cli import main  # noqa: E402
+from gscan_ros.data.sources import sample_episode  # noqa: E402
+from gscan_ros.language import get_parser  # noqa: E402
+from gscan_ros.model.policy import Policy  # noqa: E402
 from gscan_ros.world import World  # noqa: E402
 from gscan_ros.world.types import Heading, Position, Situation, WorldObject  # noqa: E402
 
@@ -223,6 +223,14 @@ def test_explain_gif_has_one_frame_per_decoding_step(tmp_path, policy):
     steps = len(trace(policy, ep.situation, command).steps)
     assert main(["explain", command, "--seed", "2", "--gif", "--out", str(out), "--threads", "1"]) == 0
     assert Image.open(out).n_frames == steps
+
+
+def test_explain_loads_the_model_on_the_device_auto_names(tmp_path):
+    """'auto' is a launcher's name (cuda if torch sees a GPU, else cpu): explain resolves it
+    before the model loads, as torch knows no device 'auto'."""
+    out = tmp_path / "auto.png"
+    assert main(["explain", "walk to a circle", "--seed", "3", "--out", str(out), "--device", "auto"]) == 0
+    assert out.is_file()
 
 
 def test_explain_situation_file_and_step(tmp_path, capsys):

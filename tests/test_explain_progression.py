@@ -6,11 +6,11 @@ import matplotlib.pyplot as plt  # noqa: E402
 import pytest  # noqa: E402
 import torch  # noqa: E402
 
+from gscan_ros.analysis.explain import evenly, snapshots, trace  # noqa: E402
+from gscan_ros.analysis.figures import progression_figure  # noqa: E402
 from gscan_ros.cli import main  # noqa: E402
 from gscan_ros.data.io import iter_episodes  # noqa: E402
 from gscan_ros.model.policy import Policy  # noqa: E402
-from gscan_ros.training.explain import evenly, snapshots, trace  # noqa: E402
-from gscan_ros.training.figures import progression_figure  # noqa: E402
 
 
 @pytest.fixture(scope="module")

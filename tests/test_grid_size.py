@@ -12,7 +12,7 @@ from gscan_ros.data.sources import sample_episode
 from gscan_ros.errors import DatasetFormatError
 from gscan_ros.world import demonstrate
 from gscan_ros.world.world import World
-from msg_adapters import MessageFormatError, msg_to_observation, observation_to_msg
+from msg_adapters import MessageFormatError, cdr_to_observation, observation_to_cdr
 
 
 @pytest.fixture(scope="module")
@@ -73,7 +73,7 @@ def test_sampled_worlds_of_any_supported_size(grid):
     assert tuple(demonstrate(episode.situation, episode.command)) == episode.actions
     obs = World(episode.situation).encode()
     assert obs.shape == (grid, grid, 16)
-    np.testing.assert_array_equal(msg_to_observation(observation_to_msg(obs)), obs)
+    np.testing.assert_array_equal(cdr_to_observation(observation_to_cdr(obs)), obs)
 
 
 @pytest.mark.parametrize("grid", [3, 17])
@@ -81,7 +81,7 @@ def test_unsupported_sizes_are_one_error(grid):
     with pytest.raises(DatasetFormatError, match="not supported"):
         sample_episode(0, grid)
     with pytest.raises(MessageFormatError, match="square grid of 4 to 16"):
-        msg_to_observation(observation_to_msg(np.zeros((grid, grid, 16), np.uint8)))
+        cdr_to_observation(observation_to_cdr(np.zeros((grid, grid, 16), np.uint8)))
 
 
 def test_generate_rejects_an_unsupported_grid_size(tmp_path, capsys):

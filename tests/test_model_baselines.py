@@ -16,8 +16,8 @@ from gscan_ros.language.lexicon import Lexicon
 from gscan_ros.language.registry import get_parser
 from gscan_ros.model.auxloss import AuxLossBatch
 from gscan_ros.model.checkpoint import build_model, checkpoint_dict, read_checkpoint, restore_model, save_checkpoint
+from gscan_ros.model.decoder import Seq2SeqBatch, command_vocabulary
 from gscan_ros.model.policy import Policy
-from gscan_ros.model.seq2seq import Seq2SeqBatch, command_vocabulary
 from gscan_ros.training.batches import EpisodeStore, EpochCursor, iterate_batches
 from gscan_ros.training.config import ConfigError, TrainConfig
 from gscan_ros.training.step import TrainStep

@@ -6,7 +6,8 @@ import torch
 from gscan_ros.errors import CheckpointError, GraphError
 from gscan_ros.language.lexicon import Concept, Lexicon
 from gscan_ros.model.checkpoint import checkpoint_dict, read_checkpoint, restore_model, save_checkpoint
-from gscan_ros.model.compositional import CompositionalNetwork, ModelConfig
+from gscan_ros.model.compositional import CompositionalNetwork
+from gscan_ros.model.config import ModelConfig
 from gscan_ros.model.policy import Policy
 
 from model_support import GRAPHS, chain, random_states, table

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 import torch
 
-from gscan_ros.model.compositional import ModelConfig, antonym_overlap
+from gscan_ros.model.compositional import antonym_overlap
+from gscan_ros.model.config import ModelConfig
 from gscan_ros.model.layout import COLUMN_MAJOR_MAX_WIDTH, Layout
 from gscan_ros.model.sparse_encoder import sparse_states
 

@@ -5,7 +5,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from gscan_ros.model.compositional import ModelConfig
+from gscan_ros.model.config import ModelConfig
 from gscan_ros.model.fast_ops import (
     BagSum,
     ContiguousGrad,

@@ -16,7 +16,8 @@ import torch
 from gscan_ros.language.lexicon import Lexicon
 from gscan_ros.language.registry import get_parser
 from gscan_ros.model import teacher_forcing
-from gscan_ros.model.compositional import CompositionalNetwork, ModelConfig
+from gscan_ros.model.compositional import CompositionalNetwork
+from gscan_ros.model.config import ModelConfig
 from gscan_ros.model.modules import ModuleTable
 from gscan_ros.model.reference import ReferenceNetwork
 from gscan_ros.world.types import Action

@@ -6,7 +6,9 @@ from types import SimpleNamespace
 import numpy as np
 import torch
 
-from gscan_ros.model.seq2seq import Seq2Seq, Seq2SeqBatch, Seq2SeqConfig, command_vocabulary
+from gscan_ros.model.config import Seq2SeqConfig
+from gscan_ros.model.decoder import Seq2SeqBatch, command_vocabulary
+from gscan_ros.model.seq2seq import Seq2Seq
 
 from model_support import random_states
 

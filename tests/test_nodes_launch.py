@@ -221,7 +221,6 @@ def test_every_node_offers_and_asks_the_qos_of_the_interface_table(checkpoint, t
     from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
 
     from gscan_ros import interface
-    from gscan_ros.data.bag_schema import msg_type_name
     from gscan_ros.nodes.episode_recorder_node import EpisodeRecorderNode
     from gscan_ros.nodes.parser_node import ParserNode
     from gscan_ros.nodes.policy_node import PolicyNode
@@ -249,7 +248,8 @@ def test_every_node_offers_and_asks_the_qos_of_the_interface_table(checkpoint, t
                     entry = interface.endpoint_of(endpoint.topic_name)
                     where = (node.get_name(), kind, endpoint.topic_name)
                     assert entry is not None, where
-                    assert msg_type_name(endpoint.msg_type) == entry.type, where
+                    msg_class = endpoint.msg_type  # a generated rosidl class, e.g. std_msgs.msg.String
+                    assert f"{msg_class.__module__.split('.')[0]}/msg/{msg_class.__name__}" == entry.type, where
                     qos = endpoint.qos_profile
                     assert qos.reliability == reliability[entry.qos.reliability], where
                     assert qos.durability == durability[entry.qos.durability], where

@@ -6,7 +6,7 @@ from gscan_ros.errors import CheckpointError, CommandError
 from gscan_ros.language import get_parser
 from gscan_ros.nodes.common import EVENT_QOS, LATCHED_LOG_QOS
 from gscan_ros.nodes.parser_node import ParserNode
-from msg_adapters import msg_to_cdr, msg_to_graph
+from msg_adapters import cdr_to_graph, text_to_cdr
 
 from ros_helpers import parameters
 
@@ -14,7 +14,7 @@ from ros_helpers import parameters
 def cdr(text: str | bytes) -> bytes:
     """A serialized std_msgs/String, as the parser's raw subscription receives it (any bytes)."""
     if isinstance(text, str):
-        return msg_to_cdr(String(data=text))
+        return text_to_cdr(text)
     return b"\x00\x01\x00\x00" + (len(text) + 1).to_bytes(4, "little") + text + b"\x00"
 
 
@@ -26,10 +26,10 @@ def parser(probe, checkpoint):
 
 
 def test_command_becomes_the_checkpoint_parsers_graph(probe, parser):
-    graphs = probe.record("command_graph", String, LATCHED_LOG_QOS)
+    graphs = probe.record("command_graph", String, LATCHED_LOG_QOS, raw=True)
     parser.on_command(cdr("Walk to a RED circle while spinning"))
     probe.spin_until(lambda: graphs, what="a command graph")
-    assert msg_to_graph(graphs[0]) == get_parser("semantic").parse("walk to a red circle while spinning")
+    assert cdr_to_graph(graphs[0]) == get_parser("semantic").parse("walk to a red circle while spinning")
 
 
 BAD = {
@@ -47,7 +47,7 @@ BAD = {
 
 def test_each_bad_command_gives_one_short_status_line(probe, parser):
     status = probe.record("status", String, EVENT_QOS)
-    graphs = probe.record("command_graph", String, LATCHED_LOG_QOS)
+    graphs = probe.record("command_graph", String, LATCHED_LOG_QOS, raw=True)
     for text, _ in BAD.values():
         parser.on_command(cdr(text))
     probe.spin_until(lambda: len(status) == len(BAD), what=f"{len(BAD)} status lines")
@@ -77,10 +77,10 @@ def test_invalid_utf8_published_on_the_topic_is_rejected(probe, parser):
 
 def test_paraphrase_becomes_its_canonical_graph_and_the_mapping_goes_on_status(probe, parser):
     status = probe.record("status", String, EVENT_QOS)
-    graphs = probe.record("command_graph", String, LATCHED_LOG_QOS)
+    graphs = probe.record("command_graph", String, LATCHED_LOG_QOS, raw=True)
     parser.on_command(cdr("Walk to the LARGE circle!"))
     probe.spin_until(lambda: graphs and status, what="a command graph and a status line")
-    graph = msg_to_graph(graphs[0])
+    graph = cdr_to_graph(graphs[0])
     assert graph == get_parser("semantic").parse("walk to a big circle") and graph.typed == "Walk to the LARGE circle!"
     assert status[0].data == (
         "parser_node: understood 'Walk to the LARGE circle!' as 'walk to a big circle': "

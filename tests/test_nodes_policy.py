@@ -14,7 +14,17 @@ from gscan_ros.model.policy import MAX_STEPS, StepOutput
 from gscan_ros.nodes.common import EVENT_QOS, VIEWER_LOG_QOS
 from gscan_ros.nodes.policy_node import PolicyNode
 from gscan_ros.world.types import Action
-from msg_adapters import graph_to_msg, msg_to_attention, observation_to_msg, reset_to_msg
+from msg_adapters import (
+    cdr_to_attention,
+    cdr_to_msg,
+    cdr_to_text,
+    graph_to_cdr,
+    grid_header,
+    observation_to_cdr,
+    reset_to_cdr,
+    text_to_cdr,
+    time_ns,
+)
 
 from ros_helpers import ScriptedPolicy, parameters, source_info
 
@@ -29,13 +39,13 @@ def start(probe, script, **params):
 
 
 def graph(command="walk to a red circle while spinning"):
-    return graph_to_msg(PARSER.parse(command))
+    return graph_to_cdr(PARSER.parse(command))
 
 
-def observation(value=0):
+def observation(value=0, header=None):
     obs = np.zeros((6, 6, 16), dtype=np.uint8)
     obs[value % 6, value // 6 % 6, 11] = 1
-    return observation_to_msg(obs)
+    return observation_to_cdr(obs, header=header)
 
 
 def test_acts_only_on_observations_published_after_its_last_action(probe):
@@ -128,7 +138,7 @@ def test_a_new_graph_preempts_and_waits_for_the_reply_to_the_last_action(probe):
 def test_bad_graphs_are_reported_and_the_node_stays_idle(probe, data):
     status = probe.record("status", String, EVENT_QOS)
     node, policy = start(probe, [Action.WALK])
-    node.on_graph(String(data=data), source_info())
+    node.on_graph(text_to_cdr(data), source_info())
     node.on_observation(observation(), source_info())
     assert policy.seen == []
     probe.spin_until(lambda: any("rejected command graph" in s.data for s in status), what="a rejection")
@@ -138,7 +148,7 @@ def test_an_observation_of_another_grid_size_is_reported_and_not_acted_on(probe)
     status = probe.record("status", String, EVENT_QOS)
     node, policy = start(probe, [Action.WALK])
     node.on_graph(graph(), source_info())
-    node.on_observation(observation_to_msg(np.zeros((12, 12, 16), dtype=np.uint8)), source_info())
+    node.on_observation(observation_to_cdr(np.zeros((12, 12, 16), dtype=np.uint8)), source_info())
     assert policy.seen == []
     probe.spin_until(lambda: any("12x12 grid; the checkpoint was trained on 6x6" in s.data for s in status),
                      what="a rejection")
@@ -150,15 +160,15 @@ def test_after_a_grid_size_mismatch_each_command_is_rejected_until_the_checkpoin
     the world is followed from the next command on."""
     from actionlib_msgs.msg import GoalStatus
 
-    from msg_adapters import msg_to_episode_status
+    from msg_adapters import cdr_to_episode_status
 
-    reports = probe.record("episode_status", GoalStatus, EVENT_QOS)
+    reports = probe.record("episode_status", GoalStatus, EVENT_QOS, raw=True)
     node, policy = start(probe, [Action.WALK])
     node.on_graph(graph(), source_info())
-    node.on_observation(observation_to_msg(np.zeros((12, 12, 16), dtype=np.uint8)), source_info())
+    node.on_observation(observation_to_cdr(np.zeros((12, 12, 16), dtype=np.uint8)), source_info())
     node.on_graph(graph("walk to a circle"), source_info())
     probe.spin_until(lambda: len(reports) == 3, what="three reports")
-    told = [msg_to_episode_status(r) for r in reports]
+    told = [cdr_to_episode_status(r) for r in reports]
     assert [r.outcome for r in told] == ["active", "rejected", "rejected"]
     assert all("12x12 grid; the checkpoint was trained on 6x6" in r.text for r in told[1:])
     assert policy.seen == [] and policy.resets == ["walk to a red circle while spinning"]
@@ -172,31 +182,35 @@ def test_after_a_grid_size_mismatch_each_command_is_rejected_until_the_checkpoin
 def test_a_graph_of_another_parser_is_rejected(probe):
     status = probe.record("status", String, EVENT_QOS)
     node, policy = start(probe, [Action.WALK])
-    node.on_graph(graph_to_msg(get_parser("dependency").parse("walk to a red circle")), source_info())
+    node.on_graph(graph_to_cdr(get_parser("dependency").parse("walk to a red circle")), source_info())
     assert policy.resets == []
     probe.spin_until(lambda: any("'dependency' parser" in s.data for s in status), what="a rejection")
 
 
 def test_attention_maps_are_published_per_word(probe):
-    red = probe.record("attention/red", Image, VIEWER_LOG_QOS)  # best effort, as offered
-    spinning = probe.record("attention/while_spinning", Image, VIEWER_LOG_QOS)
+    """Each map is stamped with the header of the observation it was computed from."""
+    red = probe.record("attention/red", Image, VIEWER_LOG_QOS, raw=True)  # best effort, as offered
+    spinning = probe.record("attention/while_spinning", Image, VIEWER_LOG_QOS, raw=True)
     node, _ = start(probe, [Action.WALK], attention_upsample=4)
     node.on_graph(graph(), source_info())
-    node.on_observation(observation(), source_info())
+    state_ns = 1_700_000_000_123_456_789
+    node.on_observation(observation(header=grid_header(state_ns)), source_info())
     deadline = time.monotonic() + 30
     while not (red and spinning):  # the publishers appear with the first step: allow discovery
         assert time.monotonic() < deadline, "no attention maps"
-        node.on_observation(observation(), source_info())
+        node.on_observation(observation(header=grid_header(state_ns)), source_info())
         probe.executor.spin_once(timeout_sec=0.05)
-    assert (red[0].height, red[0].width, red[0].encoding) == (24, 24, "mono8")
-    np.testing.assert_allclose(msg_to_attention(red[0]), np.eye(6))
-    np.testing.assert_allclose(msg_to_attention(spinning[0]), np.eye(6)[::-1])
+    msg = cdr_to_msg(red[0], "sensor_msgs/msg/Image")
+    assert (msg.height, msg.width, msg.encoding) == (24, 24, "mono8")
+    assert (time_ns(msg.header.stamp), msg.header.frame_id) == (state_ns, "gscan_grid")
+    np.testing.assert_allclose(cdr_to_attention(red[0]), np.eye(6))
+    np.testing.assert_allclose(cdr_to_attention(spinning[0]), np.eye(6)[::-1])
     viewers = [pub for pub in node.publishers if pub.topic_name.startswith("/attention/")]
     assert viewers and all(pub.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT for pub in viewers)
 
 
 def world_reset(t_ns=None):
-    return reset_to_msg(time.time_ns() if t_ns is None else t_ns)
+    return reset_to_cdr(time.time_ns() if t_ns is None else t_ns)
 
 
 def test_a_world_reset_aborts_the_running_episode(probe):
@@ -235,9 +249,9 @@ def test_a_graph_with_a_huge_arity_is_reported_and_the_node_keeps_following_comm
 
     status = probe.record("status", String, EVENT_QOS)
     node, policy = start(probe, [Action.WALK])
-    bad = json.loads(graph().data)
+    bad = json.loads(cdr_to_text(graph()))
     bad["nodes"][-1]["arity"] = 50_000_000
-    node.on_graph(String(data=json.dumps(bad)), source_info())
+    node.on_graph(text_to_cdr(json.dumps(bad)), source_info())
     probe.spin_until(lambda: any("rejected command graph" in s.data and "arity is 50000000" in s.data
                                  for s in status), what="the rejection")
     node.on_observation(observation(), source_info())
@@ -254,7 +268,7 @@ def test_size_ordering_is_published_for_a_size_word(probe):
             small[0, 0], big[5, 5] = 1.0, 1.0
             return StepOutput(super().step(observation).action, {"small": small}, {"small": big})
 
-    ordering = probe.record("attention/size_ordering", Image, VIEWER_LOG_QOS)
+    ordering = probe.record("attention/size_ordering", Image, VIEWER_LOG_QOS, raw=True)
     node = PolicyNode(SizePolicy([Action.WALK]), context=probe.context, parameter_overrides=parameters())
     probe.executor.add_node(node)
     node.on_graph(graph("walk to a small circle"), source_info())
@@ -265,4 +279,4 @@ def test_size_ordering_is_published_for_a_size_word(probe):
         probe.executor.spin_once(timeout_sec=0.05)
     expected = np.full((6, 6), 0.5)
     expected[0, 0], expected[5, 5] = 0.0, 1.0
-    np.testing.assert_allclose(msg_to_attention(ordering[0]), expected, atol=1 / 255)
+    np.testing.assert_allclose(cdr_to_attention(ordering[0]), expected, atol=1 / 255)

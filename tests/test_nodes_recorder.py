@@ -13,7 +13,7 @@ from gscan_ros.data.bag import BagEpisodeReader, BagWriter, read_bag_info
 from gscan_ros.nodes.commander import Outcome
 from gscan_ros.nodes.common import EVENT_QOS
 from gscan_ros.world.types import Action
-from msg_adapters import msg_to_episode_status
+from msg_adapters import cdr_to_episode_status
 
 from ros_helpers import in_process_stack, parameters
 
@@ -71,13 +71,13 @@ def test_a_preempted_episode_keeps_exactly_its_own_actions(probe, commander, che
     commander.spin_until(lambda: stack.recorder.ready, TIMEOUT, "the recorder")
     # The stack spins in the probe's executor: this test listens and publishes through the commander's.
     reports, actions = [], []
-    commander.create_subscription(GoalStatus, "episode_status", reports.append, EVENT_QOS)
+    commander.create_subscription(GoalStatus, "episode_status", reports.append, EVENT_QOS, raw=True)
     commander.create_subscription(String, "action", actions.append, EVENT_QOS)
     commands = commander.create_publisher(String, "command", EVENT_QOS)
     commander.spin_until(lambda: commands.get_subscription_count() >= 1, TIMEOUT, "the parser")
     def started(text, after_ns):
         """The policy reported an ACTIVE episode of `text` that it took after `after_ns`."""
-        return any((r := msg_to_episode_status(m)).outcome == es.ACTIVE and r.text == text and r.start_ns > after_ns
+        return any((r := cdr_to_episode_status(m)).outcome == es.ACTIVE and r.text == text and r.start_ns > after_ns
                    for m in reports)
 
     rng = random.Random(5)
@@ -99,10 +99,10 @@ def test_a_preempted_episode_keeps_exactly_its_own_actions(probe, commander, che
     stack.policy_node.set_parameters(parameters(max_steps=2))
     final = commander.run_episode("walk to a circle", timeout=TIMEOUT)
     assert final.outcome is Outcome.MAX_STEPS, [(r.episode_id, r.outcome, r.text) for r in map(
-        msg_to_episode_status, reports)][-6:]
+        cdr_to_episode_status, reports)][-6:]
 
     def ended():
-        return sum(msg_to_episode_status(r).ended for r in reports)
+        return sum(cdr_to_episode_status(r).ended for r in reports)
 
     deadline = time.monotonic() + TIMEOUT
     while time.monotonic() < deadline and not (ended() >= 21 and stack.recorder.episodes == ended()):
@@ -111,7 +111,7 @@ def test_a_preempted_episode_keeps_exactly_its_own_actions(probe, commander, che
     bag = close(stack, probe)
     told = {}
     for msg in reports:
-        report = msg_to_episode_status(msg)
+        report = cdr_to_episode_status(msg)
         if report.ended:
             told[report.episode_id] = (report.outcome, int(re.search(r"after (\d+) actions", report.text)[1])
                                        if report.outcome == es.PREEMPTED else None)
@@ -163,10 +163,10 @@ def test_memory_does_not_grow_with_what_is_published(probe, tmp_path):
 
     from gscan_ros import interface
     from gscan_ros.nodes.episode_recorder_node import EpisodeRecorderNode
-    from msg_adapters import msg_to_cdr
+    from msg_adapters import text_to_cdr
 
     node = EpisodeRecorderNode(context=probe.context, parameter_overrides=parameters(bag_dir=str(tmp_path / "bag")))
-    big = msg_to_cdr(String(data="x" * 2_000_000))
+    big = text_to_cdr("x" * 2_000_000)
     tracemalloc.start()
     try:
         for i in range(40):

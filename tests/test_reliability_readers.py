@@ -15,11 +15,11 @@ import torch
 from gscan_ros.data.bag_metadata import read_bag_info
 from gscan_ros.data.dataset import iter_examples
 from gscan_ros.errors import CheckpointError, DatasetFormatError, GscanError, SituationError, quoted
+from gscan_ros.experiments.plan import PlanError, load_plan
 from gscan_ros.model.checkpoint import MAX_CHECKPOINT_ENTRIES, read_checkpoint
 from gscan_ros.training.config import ConfigError, TrainConfig
-from gscan_ros.training.experiment import PlanError, load_plan
 from gscan_ros.user_files import MAX_YAML_BYTES, MAX_YAML_DEPTH
-from gscan_ros.world.serialization import situation_from_json
+from gscan_ros.world.types import situation_from_json
 
 from model_support import tiny_checkpoint
 
@@ -208,7 +208,7 @@ def test_a_checkpoint_with_too_many_files_is_refused_before_they_are_listed(tmp_
 
 
 def test_a_results_json_nested_too_deeply_is_one_report_error(tmp_path):
-    from gscan_ros.training.tables import load_runs
+    from gscan_ros.experiments.tables import load_runs
 
     run = tmp_path / "run"
     run.mkdir()

@@ -246,7 +246,7 @@ def test_a_torn_last_metrics_line_does_not_block_the_run(data, tmp_path, capsys,
 
 
 def test_readers_of_metrics_skip_a_torn_line_with_one_warning(tmp_path, caplog):
-    from gscan_ros.training.experiment import read_events
+    from gscan_ros.training.metrics_log import read_events
     from gscan_ros.training.trainer import plot_learning_curve
 
     metrics = tmp_path / "metrics.jsonl"
@@ -303,9 +303,9 @@ def test_a_full_disk_is_one_line(data, tmp_path, capsys, monkeypatch, command):
         raise OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "out" / "file"))
 
     target, argv = {
-        "generate": ("gscan_ros.data.generate._generate_into", _generate(tmp_path / "out")),
+        "generate": ("gscan_ros.data.generate._run_tasks", _generate(tmp_path / "out")),
         "train": ("gscan_ros.training.trainer.append_event", _train(data / "txt", tmp_path / "out")),
-        "evaluate": ("gscan_ros.training.report.write_text",
+        "evaluate": ("gscan_ros.training.evaluation_files.write_text",
                      ["evaluate", "--checkpoint", data / "tiny.pt", "--data", data / "txt", "--out", tmp_path / "out",
                       "--max-examples", "2", "--quiet"]),
     }[command]

@@ -3,7 +3,7 @@ import platform
 
 import pytest
 
-from gscan_ros.model.runtime import keep_freed_memory
+from gscan_ros.runtime import keep_freed_memory
 
 
 @pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="mallopt thresholds are glibc-specific")

@@ -1,5 +1,5 @@
 """The MKL vendor shim: which subprocess environments get it, and that a process started
-with it computes the same matmuls (gscan_ros/model/runtime.py: mkl_shim_env)."""
+with it computes the same matmuls (gscan_ros/runtime.py: mkl_shim_env)."""
 import os
 import shutil
 import subprocess
@@ -8,9 +8,9 @@ from pathlib import Path
 
 import pytest
 
-from gscan_ros.model import runtime
-from gscan_ros.model.runtime import MKL_SHIM, cpu_vendor, mkl_shim_env
-from gscan_ros.training import experiment
+from gscan_ros import runtime
+from gscan_ros.experiments import locks, plan, runner
+from gscan_ros.runtime import MKL_SHIM, cpu_vendor, mkl_shim_env
 from tests.test_experiment import write_plan
 
 SOURCE = Path(runtime.__file__).with_name("mkl_intel_cpu.c")
@@ -53,7 +53,7 @@ def test_cpu_vendor_reads_cpuinfo(tmp_path):
 def test_a_process_started_with_the_shim_computes_the_same_products(tmp_path):
     lib = tmp_path / MKL_SHIM
     subprocess.run(["cc", "-shared", "-fPIC", "-O2", "-o", str(lib), str(SOURCE)], check=True)
-    probe = ("import torch\nfrom gscan_ros.model.runtime import mkl_shim_loaded\n"
+    probe = ("import torch\nfrom gscan_ros.runtime import mkl_shim_loaded\n"
              "torch.manual_seed(0)\n"
              "a, b = torch.randn(300, 150, dtype=torch.float64), torch.randn(150, 450, dtype=torch.float64)\n"
              "err = ((a.float() @ b.float()).double() - a @ b).abs().max().item()\n"
@@ -64,9 +64,9 @@ def test_a_process_started_with_the_shim_computes_the_same_products(tmp_path):
 
 
 def test_the_runner_starts_its_steps_in_the_shim_environment(tmp_path, monkeypatch):
-    monkeypatch.setattr(experiment, "mkl_shim_env", lambda: {**os.environ, "GSCAN_SHIM_PROBE": "from mkl_shim_env"})
-    runner = experiment.Runner(experiment.load_plan(write_plan(tmp_path / "plan.yaml", tmp_path)), progress=False)
-    lock, log = experiment.FileLock(tmp_path / ".lock"), tmp_path / "step.log"
+    monkeypatch.setattr(runner, "mkl_shim_env", lambda: {**os.environ, "GSCAN_SHIM_PROBE": "from mkl_shim_env"})
+    steps = runner.Runner(plan.load_plan(write_plan(tmp_path / "plan.yaml", tmp_path)), progress=False)
+    lock, log = locks.FileLock(tmp_path / ".lock"), tmp_path / "step.log"
     assert lock.acquire()
-    runner._call([sys.executable, "-c", "import os; print(os.environ['GSCAN_SHIM_PROBE'])"], log, lock, "probe")
+    steps._call([sys.executable, "-c", "import os; print(os.environ['GSCAN_SHIM_PROBE'])"], log, lock, "probe")
     assert log.read_text().splitlines()[-1] == "from mkl_shim_env"

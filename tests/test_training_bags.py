@@ -64,6 +64,17 @@ def test_example_limit_and_dev_subset_match_the_dataset(data, parser):
         (e.command, e.situation, e.actions) for e in load_dev(str(txt), cfg)]
 
 
+def test_dev_length_cap_keeps_only_short_episodes_from_either_source(data):
+    txt, bags = data
+    lengths = sorted(len(e.actions) for e in load_split(str(txt), "test"))
+    cap = lengths[len(lengths) // 2]
+    cfg = TrainConfig(lexicon="none", dev_split="test", max_dev_examples=0, max_dev_target_length=cap)
+    short = [(e.command, e.situation, e.actions) for e in load_dev(str(txt), cfg)]
+    assert len(short) == sum(n <= cap for n in lengths) < len(lengths)
+    assert all(len(actions) <= cap for _, _, actions in short)
+    assert [(e.command, e.situation, e.actions) for e in load_dev(str(bags), cfg)] == short
+
+
 def test_second_load_uses_the_cache_without_world(data, parser, monkeypatch):
     _, bags = data
     cfg = TrainConfig(lexicon="none")

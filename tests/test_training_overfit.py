@@ -4,7 +4,8 @@ import torch
 
 from gscan_ros.language.lexicon import Lexicon
 from gscan_ros.language.registry import get_parser
-from gscan_ros.model.compositional import CompositionalNetwork, ModelConfig
+from gscan_ros.model.compositional import CompositionalNetwork
+from gscan_ros.model.config import ModelConfig
 from gscan_ros.model.policy import Policy
 from gscan_ros.training.batches import EpisodeStore, EpochCursor, iterate_batches
 from gscan_ros.training.step import TrainStep

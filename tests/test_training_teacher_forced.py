@@ -14,8 +14,10 @@ import torch
 
 from gscan_ros.data.io import select_test_episodes
 from gscan_ros.errors import InvalidActionError
+from gscan_ros.model.config import Seq2SeqConfig
+from gscan_ros.model.decoder import command_vocabulary
 from gscan_ros.model.policy import MAX_STEPS, Policy
-from gscan_ros.model.seq2seq import Seq2Seq, Seq2SeqConfig, command_vocabulary
+from gscan_ros.model.seq2seq import Seq2Seq
 from gscan_ros.training.batches import EpisodeStore
 from gscan_ros.training.evaluate import evaluate_episodes, teacher_forced
 

@@ -62,7 +62,7 @@ def test_object_size_scales_the_shape():
 def test_world_render_matches_render_of_its_state():
     w = World(_situation())
     w.step("walk")
-    np.testing.assert_array_equal(w.render(), render(w.snapshot()))
+    np.testing.assert_array_equal(render(w), render(w.snapshot()))
 
 
 def test_render_frames_with_attention_panels():

@@ -34,7 +34,7 @@ def main() -> None:
     import torch.nn.functional as F
 
     from gscan_ros.model import sparse_encoder
-    from gscan_ros.model.runtime import configure_torch
+    from gscan_ros.runtime import configure_torch
 
     configure_torch(args.threads)
     torch.manual_seed(0)

@@ -41,7 +41,7 @@ def main() -> None:
     from gscan_ros.data.splits import SPLIT_LETTERS
     from gscan_ros.errors import GscanError
     from gscan_ros.model.policy import Policy
-    from gscan_ros.model.runtime import configure_torch
+    from gscan_ros.runtime import configure_torch
     from gscan_ros.training.evaluate import evaluate_episodes
 
     configure_torch(args.threads)

@@ -39,7 +39,7 @@ def main() -> None:
     from gscan_ros.language import canonicalize
     from gscan_ros.language.paraphrase import paraphrase
     from gscan_ros.model.policy import Policy
-    from gscan_ros.model.runtime import configure_torch
+    from gscan_ros.runtime import configure_torch
     from gscan_ros.training.evaluate import evaluate_episodes
 
     configure_torch(args.threads)

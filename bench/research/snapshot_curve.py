@@ -48,7 +48,7 @@ def main() -> None:
     from gscan_ros.data.io import select_test_episodes
     from gscan_ros.errors import GscanError
     from gscan_ros.model.policy import Policy
-    from gscan_ros.model.runtime import configure_torch
+    from gscan_ros.runtime import configure_torch
     from gscan_ros.training.batches import EpisodeStore, has_word
     from gscan_ros.training.evaluate import evaluate_episodes, teacher_forced
     from gscan_ros.training.trainer import iter_split

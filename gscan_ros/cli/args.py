@@ -11,7 +11,7 @@ import os
 from pathlib import Path
 from typing import Callable
 
-from gscan_ros.model.runtime import DEVICES
+from gscan_ros.runtime import DEVICES
 
 
 class ArgumentParser(argparse.ArgumentParser):

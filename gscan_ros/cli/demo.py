@@ -109,7 +109,7 @@ def _report(graph, episode, result, gif_path: Path) -> bool:
     from gscan_ros.outputs import replacing
     from gscan_ros.world import demonstrate
     from gscan_ros.world.render import render_frames, save_gif
-    from msg_adapters import msg_to_attention
+    from msg_adapters import cdr_to_attention
 
     actions = result.actions
     moves = [a.token for a in result.moves]
@@ -135,7 +135,7 @@ def _report(graph, episode, result, gif_path: Path) -> bool:
         verdict = "yes, exact match" if moves == gold else "no, " + _failure(episode, graph, result, planned)
         print(f"match:    {verdict}")
     attention = [
-        {word: msg_to_attention(maps[t], grid_size=episode.situation.grid_size)
+        {word: cdr_to_attention(maps[t], grid_size=episode.situation.grid_size)
          for word, maps in result.attention.items() if t < len(maps)}
         for t in range(len(actions))
     ]

@@ -54,10 +54,10 @@ def run(args: argparse.Namespace) -> int:
 
     from gscan_ros.data.io import select_test_episodes
     from gscan_ros.model.policy import Policy, default_checkpoint_path
-    from gscan_ros.model.runtime import configure_torch
+    from gscan_ros.runtime import configure_torch
     from gscan_ros.training.distributed import joined
     from gscan_ros.training.evaluate import evaluate_episodes
-    from gscan_ros.training.report import claim_report_dir, markdown_table, write_reports
+    from gscan_ros.training.evaluation_files import claim_report_dir, markdown_table, write_reports
 
     configure_torch(args.threads)
     with contextlib.ExitStack() as held:

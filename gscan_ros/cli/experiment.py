@@ -55,7 +55,9 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from gscan_ros.errors import GscanError
-    from gscan_ros.training.experiment import ExperimentError, Runner, load_plan
+    from gscan_ros.experiments.plan import load_plan
+    from gscan_ros.experiments.runner import Runner
+    from gscan_ros.experiments.state import ExperimentError
 
     cpus = available_cpus()
     if args.parallel * args.threads > cpus:

@@ -74,10 +74,11 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from gscan_ros.model.runtime import configure_torch
+    from gscan_ros.runtime import configure_torch, resolve_device
 
     _check_combination(args)
     configure_torch(args.threads)
+    args.device = resolve_device(args.device)  # 'auto' named once, before any work
     if args.metrics:
         return _metrics(args)
     from gscan_ros.outputs import writing_file
@@ -129,7 +130,7 @@ def _episode(args: argparse.Namespace, grid_size: int):
 
 def _setup(args: argparse.Namespace, policy):
     """(command, situation with the command's referent as target, gold actions or None)."""
-    from gscan_ros.training.explain import require_attention, with_referent
+    from gscan_ros.analysis.explain import require_attention, with_referent
 
     require_attention(policy)
     command, situation, actions = _episode(args, policy.grid_size)
@@ -146,9 +147,9 @@ def _model_name(args: argparse.Namespace, policy) -> str:
 
 def _figure(args: argparse.Namespace, path: Path) -> int:
     """Fig. 3 (one step) or its GIF, written to `path`."""
+    from gscan_ros.analysis.explain import trace
+    from gscan_ros.analysis.figures import figure_rgb, panel_titles, save_figure, step_figure
     from gscan_ros.model.policy import Policy
-    from gscan_ros.training.explain import trace
-    from gscan_ros.training.figures import figure_rgb, panel_titles, save_figure, step_figure
     from gscan_ros.world.render import save_gif
 
     policy = Policy.from_checkpoint(args.checkpoint, device=args.device)
@@ -178,9 +179,9 @@ def _figure(args: argparse.Namespace, path: Path) -> int:
 
 def _progression(args: argparse.Namespace, path: Path) -> int:
     """Fig. 4 (the maps along a training run), written to `path`."""
+    from gscan_ros.analysis.explain import evenly, snapshots, trace
+    from gscan_ros.analysis.figures import progression_figure, save_figure
     from gscan_ros.model.policy import Policy
-    from gscan_ros.training.explain import evenly, snapshots, trace
-    from gscan_ros.training.figures import progression_figure, save_figure
     from gscan_ros.world import demonstrate
 
     paths = evenly(snapshots(args.progression), args.max_columns)
@@ -205,9 +206,7 @@ def _progression(args: argparse.Namespace, path: Path) -> int:
 
 
 def _metrics(args: argparse.Namespace) -> int:
-    from gscan_ros.data.io import select_test_episodes
-    from gscan_ros.model.policy import Policy
-    from gscan_ros.training.explain import (
+    from gscan_ros.analysis.explain import (
         evenly,
         metrics_table,
         noun_colours,
@@ -220,6 +219,8 @@ def _metrics(args: argparse.Namespace) -> int:
         step0_readings,
         summarize,
     )
+    from gscan_ros.data.io import select_test_episodes
+    from gscan_ros.model.policy import Policy
 
     episodes = select_test_episodes(args.data, args.splits, args.max_examples)  # as evaluate's seed 0
     if args.progression:

@@ -22,7 +22,10 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=nonnegative_int, default=0, help="random seed (default: 0)")
     size = p.add_mutually_exclusive_group(required=True)
     size.add_argument("--examples", type=positive_int, metavar="N",
-                      help="generate a seeded subset of N candidate examples (spread over all commands)")
+                      help="a seeded sample of the same-seed full set, a subset of each split: N shared out "
+                           "over its splits in proportion, each example in its full-set split (the k-shot "
+                           "examples always in train; sampled test examples the full set discards as "
+                           "duplicates of train are left out, so a few fewer than N may remain)")
     size.add_argument("--full", action="store_true", help="generate every candidate (the full dataset)")
     p.add_argument("--split-kind", choices=SPLIT_KINDS, default="compositional",
                    help="compositional splits A-H (default) or the target-length split I")

@@ -35,7 +35,7 @@ def register(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from gscan_ros.data.bag import iter_bag_episodes
-    from gscan_ros.data.io import require_splits
+    from gscan_ros.data.splits import require_splits
     from gscan_ros.model.policy import Policy
     from gscan_ros.training.evaluate import evaluate_episodes
     from gscan_ros.training.failures import failure_label

@@ -30,8 +30,8 @@ def register(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     import contextlib
 
+    from gscan_ros.experiments.tables import write_report
     from gscan_ros.outputs import check_targets, claimed
-    from gscan_ros.training.tables import write_report
 
     curves = None if args.no_curves else args.curves or args.out.with_name(f"{args.out.stem}_curves.png")
     with contextlib.ExitStack() as held:

@@ -15,9 +15,10 @@ from pathlib import Path
 
 import yaml
 
-from gscan_ros.data.bag_schema import YamlDumper, offered_qos, type_hash
+from gscan_ros.data.bag_schema import YamlDumper, offered_qos
 from gscan_ros.errors import DatasetFormatError, quoted, shortened
 from gscan_ros.user_files import read_yaml
+from msg_adapters import type_hash
 
 METADATA_FILE = "metadata.yaml"
 CACHE_DIR = ".cache"  # the decode-once episode cache beside a bag (bag_cache.py)

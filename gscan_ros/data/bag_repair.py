@@ -23,13 +23,13 @@ from gscan_ros.data.bag_format import LEGACY_EPISODE_TOPICS, LIVE_SPLIT
 from gscan_ros.data.bag_metadata import EPISODE_FORMAT, LEGACY_FORMAT_VERSION, METADATA_FILE, BagInfo, read_bag_info
 from gscan_ros.data.bag_report import BagReadReport
 from gscan_ros.data.bag_scan import LOSS, McapScan
-from gscan_ros.data.bag_schema import ACTION, COMMAND, TOPICS, message_definition
+from gscan_ros.data.bag_schema import ACTION, COMMAND, TOPICS
 from gscan_ros.data.bag_writer import BagWriter
 from gscan_ros.data.episode_assembly import carries_records, stack_topic
 from gscan_ros.errors import DatasetFormatError, GscanError
 from gscan_ros.outputs import scratch
 from gscan_ros.world.types import Action
-from msg_adapters import cdr_to_episode_status, cdr_to_text
+from msg_adapters import cdr_to_episode_status, cdr_to_text, message_definition
 
 
 @dataclass(frozen=True)
@@ -291,7 +291,7 @@ class _RepairCopier:
                 msg_type = topic.msg_type
                 try:
                     encoding, text = SchemaEncoding.ROS2, message_definition(msg_type).encode()
-                except (OSError, GscanError, ValueError):
+                except GscanError:  # not a ROS 2 Jazzy type
                     return None
             try:
                 channel_id = self.writer.register_channel(

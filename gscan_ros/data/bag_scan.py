@@ -23,8 +23,9 @@ from mcap.well_known import MessageEncoding, Profile, SchemaEncoding
 
 from gscan_ros.data.bag_metadata import BagInfo
 from gscan_ros.data.bag_report import BagReadReport
-from gscan_ros.data.bag_schema import YamlDumper, message_definition, offered_qos, type_hash
+from gscan_ros.data.bag_schema import YamlDumper, offered_qos
 from gscan_ros.errors import DatasetFormatError, GscanError
+from msg_adapters import message_definition, type_hash
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 _OP_HEADER, _OP_FOOTER, _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE = 0x01, 0x02, 0x03, 0x04, 0x05
@@ -320,7 +321,7 @@ class McapScan:
         try:
             definition = message_definition(topic.msg_type).encode()
             schema = Schema(channel_id, definition, SchemaEncoding.ROS2, topic.msg_type)
-        except (OSError, GscanError, ValueError):
+        except GscanError:  # not a ROS 2 Jazzy type
             return None
         schema_id = next((i for i, s in self.schemas.items() if s.name == topic.msg_type), None)
         if schema_id is None:

@@ -2,8 +2,8 @@
 live recordings (`BagWriter.write_message` of every message as received), one format:
 the live topics (docs/bags.md).
 
-MCAP profile `ros2`, CDR messages (rclpy serialization via msg_adapters), `ros2msg`
-schemas with full dependency text, zstd chunks, and a rosbag2 `metadata.yaml`.
+MCAP profile `ros2`, CDR messages and `ros2msg` schemas with full dependency text (both
+from msg_adapters), zstd chunks, and a rosbag2 `metadata.yaml`.
 """
 from __future__ import annotations
 
@@ -43,26 +43,25 @@ from gscan_ros.data.bag_schema import (
     SITUATION,
     TOPICS,
     WORLD_IMAGE,
+    TopicSpec,
     YamlDumper,
-    message_definition,
-    msg_type_name,
     offered_qos,
-    type_hash,
 )
 from gscan_ros.data.episode import Episode
 from gscan_ros.errors import DatasetFormatError, GraphError
 from gscan_ros.language.graph import CommandGraph
 from gscan_ros.world.types import Action
 from msg_adapters import (
-    action_to_msg,
-    episode_status_to_msg,
-    graph_to_msg,
+    action_to_cdr,
+    episode_status_to_cdr,
+    graph_to_cdr,
     grid_header,
-    image_to_msg,
-    msg_to_cdr,
-    observation_to_msg,
-    situation_to_msg,
-    text_to_msg,
+    image_to_cdr,
+    message_definition,
+    observation_to_cdr,
+    situation_to_cdr,
+    text_to_cdr,
+    type_hash,
 )
 
 DEFAULT_CHUNK_SIZE = 1 << 20
@@ -156,10 +155,11 @@ class BagWriter:
         self._write_metadata(STATUS_RECORDING)
 
     # -- writing -----------------------------------------------------------------------
-    def write_message(self, topic: str, msg, t_ns: int, publish_ns: int | None = None) -> None:
-        """Append one ROS message (any rosidl type) on `topic`, received at `t_ns` (the log
-        time) and published at `publish_ns` (the DDS source timestamp; default `t_ns`)."""
-        self._write(topic, msg, t_ns, publish_ns)
+    def write_message(self, topic: str, msg_type: str, data: bytes, t_ns: int, publish_ns: int | None = None) -> None:
+        """Append one serialized message of `msg_type` ("pkg/msg/Type", CDR `data` as
+        msg_adapters makes it) on `topic`, received at `t_ns` (the log time) and published
+        at `publish_ns` (the DDS source timestamp; default `t_ns`)."""
+        self._write(topic, msg_type, data, t_ns, publish_ns)
         self._file.flush()  # cheap when empty; pushes out a chunk the MCAP writer just closed
 
     def write_episode(
@@ -185,8 +185,8 @@ class BagWriter:
         episode_id = str(self.episodes_written)
         prologue = iter(range(t0_ns, t0_ns + STEP_NS, PROLOGUE_NS))
         record = episode_record(episode, episode_id, self.episodes_written)
-        self._write(EPISODE.name, text_to_msg(json.dumps(record, separators=(",", ":"))), next(prologue))
-        self._write(SITUATION.name, situation_to_msg(episode.situation), next(prologue))
+        self._write_topic(EPISODE, text_to_cdr(json.dumps(record, separators=(",", ":"))), next(prologue))
+        self._write_topic(SITUATION, situation_to_cdr(episode.situation), next(prologue))
         world = None
         if images:
             from gscan_ros.world.world import World
@@ -194,31 +194,33 @@ class BagWriter:
             world = World(episode.situation)
         states = iter(episode.states())
         self._write_state(next(states), world, next(prologue))
-        self._write(COMMAND.name, text_to_msg(episode.command), next(prologue))
+        self._write_topic(COMMAND, text_to_cdr(episode.command), next(prologue))
         if graph is not None:
-            self._write(COMMAND_GRAPH.name, graph_to_msg(graph), next(prologue))
+            self._write_topic(COMMAND_GRAPH, graph_to_cdr(graph), next(prologue))
         start_ns = next(prologue)
-        self._write(EPISODE_STATUS.name, episode_status_to_msg(es.EpisodeStatus(episode_id, start_ns, es.ACTIVE)),
-                    start_ns)
+        self._write_topic(EPISODE_STATUS, episode_status_to_cdr(es.EpisodeStatus(episode_id, start_ns, es.ACTIVE)),
+                          start_ns)
         t_ns = start_ns
         for t, action in enumerate((*episode.actions, Action.EOS)):
             t_ns = t0_ns + (t + 1) * STEP_NS
-            self._write(ACTION.name, action_to_msg(action), t_ns)
+            self._write_topic(ACTION, action_to_cdr(action), t_ns)
             if action is not Action.EOS:
                 if world is not None:
                     world.step(action)
                 self._write_state(next(states), world, t_ns + ACTION_DELAY_NS)
-        self._write(EPISODE_STATUS.name, episode_status_to_msg(es.EpisodeStatus(episode_id, start_ns, es.COMPLETE)),
-                    t_ns + ACTION_DELAY_NS)
+        self._write_topic(EPISODE_STATUS, episode_status_to_cdr(es.EpisodeStatus(episode_id, start_ns, es.COMPLETE)),
+                          t_ns + ACTION_DELAY_NS)
         self.count_episode(episode.split)
         self._file.flush()
         return self._end_ns
 
     def _write_state(self, state, world, t_ns: int) -> None:
         """The world's state at `t_ns`, stamped with that time as the live world stamps it."""
-        self._write(OBSERVATION.name, observation_to_msg(state, header=grid_header(t_ns)), t_ns)
+        self._write_topic(OBSERVATION, observation_to_cdr(state, header=grid_header(t_ns)), t_ns)
         if world is not None:
-            self._write(WORLD_IMAGE.name, image_to_msg(world.render(), header=grid_header(t_ns)), t_ns)
+            from gscan_ros.world.render import render
+
+            self._write_topic(WORLD_IMAGE, image_to_cdr(render(world), header=grid_header(t_ns)), t_ns)
 
     def count_episode(self, split: str | None) -> None:
         """One more episode written (of `split`, when known): numbering and metadata counts."""
@@ -251,12 +253,15 @@ class BagWriter:
         if self._mcap is None:
             raise RuntimeError(f"bag writer for {self.bag_dir} is not open")
 
-    def _write(self, topic: str, msg, t_ns: int, publish_ns: int | None = None) -> None:
+    def _write_topic(self, topic: TopicSpec, data: bytes, t_ns: int) -> None:
+        self._write(topic.name, topic.msg_type, data, t_ns)
+
+    def _write(self, topic: str, msg_type: str, data: bytes, t_ns: int, publish_ns: int | None = None) -> None:
         self._require_open()
         channel_id = self._channels.get(topic)
         if channel_id is None:
-            channel_id = self.register_channel(topic, msg_type_name(type(msg)))
-        self.add_record(topic, channel_id, msg_to_cdr(msg), t_ns, t_ns if publish_ns is None else publish_ns, 0)
+            channel_id = self.register_channel(topic, msg_type)
+        self.add_record(topic, channel_id, data, t_ns, t_ns if publish_ns is None else publish_ns, 0)
 
     # -- channels and records (`bag repair` copies another bag's through these) ------------
     def channel_id(self, topic: str) -> int | None:

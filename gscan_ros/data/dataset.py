@@ -363,7 +363,7 @@ def read_header(path: str | os.PathLike) -> DatasetHeader:
 
 def iter_raw_examples(path: str | os.PathLike, splits: Iterable[str] | None = None) -> Iterator[tuple[str, int, dict]]:
     """(split, index, example dict) in file order, streaming; `splits` filters."""
-    from gscan_ros.data.io import require_splits
+    from gscan_ros.data.splits import require_splits
 
     wanted = None if splits is None else frozenset(splits)
     sizes: dict[str, int] = {}

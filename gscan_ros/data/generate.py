@@ -14,6 +14,11 @@ Pipeline (as LauraRuis/groundedSCAN `dataset.py`):
    dataset manifest), built in a staging folder inside the output folder and moved into
    place only once complete, under the output's lock (`gscan_ros.outputs`).
 
+A subset (`max_examples`) is a sample of each split of the same-seed full set: the
+full set's split draws, then a seeded share of each split
+(`gscan_ros.data.splits.sample_splits`), less the sampled test examples the full set
+discards as duplicates of train (`_subset`).
+
 Defaults reproduce the released compositional split sizes: with 5 resamplings the
 per-direction layout counts (17 straight, 41 diagonal) give exactly the released
 B-H counts, and a 10 % random test + 1 % dev give the released train (367,933 with
@@ -26,9 +31,10 @@ import json
 import multiprocessing
 import os
 import time
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Iterator
+from typing import BinaryIO, Callable, Iterator
 
 import numpy as np
 
@@ -53,7 +59,9 @@ from gscan_ros.data.splits import (
     SplitResult,
     assign_compositional,
     assign_length,
+    discard_equivalent,
     held_out_splits,
+    sample_splits,
 )
 from gscan_ros.errors import GscanError
 from gscan_ros.outputs import claimed, refuse_links, scratch
@@ -73,7 +81,7 @@ class GenerationConfig:
 
     seed: int = 0
     split_kind: str = "compositional"
-    max_examples: int | None = None  # None: every candidate (the full dataset)
+    max_examples: int | None = None  # None: the full dataset; N: N of its examples, split by split
     num_resampling: int | None = None
     percentage_train: float | None = None  # 1 - random test fraction
     percentage_dev: float = 0.01
@@ -97,6 +105,9 @@ class GenerationConfig:
                              f"({SUPPORTED_GRID_SIZES[0]} to {SUPPORTED_GRID_SIZES[-1]})")
         if out.max_examples is not None and out.max_examples < 1:
             raise GscanError(f"--examples must be positive, got {out.max_examples}")
+        if out.split_kind == "compositional" and out.max_examples is not None and out.max_examples < out.k_shot:
+            raise GscanError(f"--examples must be at least --k-shot ({out.k_shot}): a subset keeps every "
+                             f"k-shot example, got {out.max_examples}")
         if out.num_resampling < 1:
             raise GscanError(f"num_resampling must be >= 1, got {out.num_resampling}")
         if not (0.0 < out.percentage_train <= 1.0 and 0.0 <= out.percentage_dev < 1.0):
@@ -162,23 +173,18 @@ def _labels(config: GenerationConfig, command: Command, target: ObjectSpec,
     return np.array([by_direction[p.direction] for p in layouts], dtype=np.int8)
 
 
-def _select(config: GenerationConfig, chunks: list[_Chunk]) -> list[np.ndarray]:
-    """Per chunk, a bool mask of the candidates to generate (a seeded subset if limited)."""
-    masks = [c.labels != _DROPPED for c in chunks]
-    total = sum(int(m.sum()) for m in masks)
-    if config.max_examples is None or config.max_examples >= total:
-        return masks
-    rng = np.random.default_rng([config.seed, _STREAM_SUBSET])
-    keep = np.zeros(total, dtype=bool)
-    keep[rng.choice(total, size=config.max_examples, replace=False)] = True
-    out, start = [], 0
-    for m in masks:
-        n = int(m.sum())
-        sub = m.copy()
-        sub[m] = keep[start:start + n]
-        out.append(sub)
-        start += n
-    return out
+def _tasks(chunks: list[_Chunk], selected: np.ndarray) -> list[tuple[int, tuple[ObjectSpec, ...], np.ndarray]]:
+    """(command index, targets, mask) of each chunk with a selected candidate; `selected`
+    runs over the candidates that are not dropped, in generation order."""
+    tasks, start = [], 0
+    for c in chunks:
+        kept = c.labels != _DROPPED
+        mask = np.zeros_like(kept)
+        mask[kept] = selected[start:start + int(kept.sum())]
+        start += int(kept.sum())
+        if mask.any():
+            tasks.append((c.command_index, c.targets, mask))
+    return tasks
 
 
 # ---------------------------------------------------------------------------------------
@@ -200,8 +206,9 @@ def _init_worker(config: GenerationConfig, placements: dict) -> None:
     _WORKER_STATE["placements"] = placements
 
 
-def _run_chunk(task: tuple[int, tuple[ObjectSpec, ...], np.ndarray]) -> _ChunkResult:
-    command_index, targets, mask = task
+def _run_chunk(task: tuple[int, tuple[ObjectSpec, ...], np.ndarray, bool]) -> _ChunkResult:
+    """Plan the candidates `mask` of one command; their JSON lines only if `serialise`."""
+    command_index, targets, mask, serialise = task
     config: GenerationConfig = _WORKER_STATE["config"]
     placements = _WORKER_STATE["placements"]
     command = COMMANDS[command_index]
@@ -221,8 +228,9 @@ def _run_chunk(task: tuple[int, tuple[ObjectSpec, ...], np.ndarray]) -> _ChunkRe
             actions = demonstrate(situation, command.frame)
             target_text = ",".join([_TOKENS[a] for a in actions])
             cell = situation.target_object.position
-            example = dict(fixed, situation=situation.to_json(), target_commands=target_text, **tail)
-            lines.append(json.dumps(example, separators=(",", ":")))
+            if serialise:
+                example = dict(fixed, situation=situation.to_json(), target_commands=target_text, **tail)
+                lines.append(json.dumps(example, separators=(",", ":")))
             digest = hashlib.blake2b(f"{command.json_text}|{target_text}|{cell.row},{cell.col}".encode(),
                                      digest_size=8).digest()
             keys.append(int.from_bytes(digest, "little"))
@@ -236,15 +244,20 @@ def _run_chunk(task: tuple[int, tuple[ObjectSpec, ...], np.ndarray]) -> _ChunkRe
     )
 
 
-def _map_chunks(config, placements, tasks, workers: int) -> Iterator[_ChunkResult]:
-    """Chunk results in task order, computed in `workers` processes (1: in-process)."""
+_ChunkRunner = Callable[[list], Iterator[_ChunkResult]]
+
+
+@contextmanager
+def _chunk_runner(config: GenerationConfig, placements: dict, workers: int) -> Iterator[_ChunkRunner]:
+    """A function from tasks to chunk results in task order, computed in `workers`
+    processes (1: in-process), started once for every pass over the chunks."""
     if workers <= 1:
         _init_worker(config, placements)
-        yield from map(_run_chunk, tasks)
+        yield lambda tasks: map(_run_chunk, tasks)
         return
     ctx = multiprocessing.get_context("spawn")  # safe whatever threads the parent runs
     with ctx.Pool(workers, initializer=_init_worker, initargs=(config, placements)) as pool:
-        yield from pool.imap(_run_chunk, tasks, chunksize=1)
+        yield lambda tasks: pool.imap(_run_chunk, tasks, chunksize=1)
 
 
 # ---------------------------------------------------------------------------------------
@@ -271,26 +284,23 @@ def generate_dataset(out_dir: str | os.PathLike, config: GenerationConfig = Gene
         layout_rng = np.random.default_rng([config.seed, _STREAM_PLACEMENTS])
         placements = {t: sample_placements(layout_rng, config.grid_size, config.num_resampling) for t in ALL_OBJECTS}
         chunks = _plan(config, placements)
-        masks = _select(config, chunks)
         candidates = sum(c.labels.size for c in chunks)
         dropped = sum(int((c.labels == _DROPPED).sum()) for c in chunks)
-        tasks = [(c.command_index, c.targets, m) for c, m in zip(chunks, masks) if m.any()]
-        labels = np.concatenate([c.labels[m] for c, m in zip(chunks, masks)]).astype(np.int8)
+        labels = np.concatenate([c.labels[c.labels != _DROPPED] for c in chunks]).astype(np.int8)
         if config.split_kind == "compositional":
             _check_k_shot(config.k_shot, int((labels == SPLIT_NAMES.index(K_SHOT_SPLIT)).sum()))
         out_dir.mkdir(parents=True, exist_ok=True)
         with scratch(out_dir, "dataset") as stage:
             store_path = stage / "examples.jsonl"
-            offsets, keys, lengths = _generate_into(store_path, config, placements, tasks, len(labels),
-                                                    workers, progress)
-            split_rng = np.random.default_rng([config.seed, _STREAM_SPLITS])
-            if config.split_kind == "compositional":
-                result = assign_compositional(split_rng, labels, keys, config.percentage_train,
-                                              config.percentage_dev, config.k_shot, dropped)
-            else:
-                result = assign_length(split_rng, lengths, keys, config.cut_off_target_length,
-                                       config.percentage_train, config.percentage_dev)
-            header = _header(config, result, generated=len(labels), candidates=candidates)
+            with open(store_path, "wb") as store, _chunk_runner(config, placements, workers) as run:
+                if config.max_examples is None:
+                    everything = _tasks(chunks, np.ones(len(labels), dtype=bool))
+                    offsets, keys, lengths = _run_tasks(run, everything, progress, store)
+                    result = _assign(config, labels, keys, lengths, dropped)
+                else:
+                    result, selected = _subset(config, placements, chunks, labels, dropped, run, progress)
+                    offsets, _, _ = _run_tasks(run, _tasks(chunks, selected), progress, store)
+            header = _header(config, result, generated=len(offsets) - 1, candidates=candidates)
             built = stage / "new"
             built.mkdir()
             if fmt == "txt":
@@ -305,7 +315,7 @@ def generate_dataset(out_dir: str | os.PathLike, config: GenerationConfig = Gene
         path=out_dir / DATASET_FILE if fmt == "txt" else out_dir,
         split_sizes={s: len(v) for s, v in result.splits.items()},
         candidates=candidates,
-        generated=len(labels),
+        generated=len(offsets) - 1,
         dropped_multiple_rules=dropped,
         discarded_equivalent=result.discarded_equivalent,
         seconds=time.perf_counter() - start,
@@ -313,16 +323,76 @@ def generate_dataset(out_dir: str | os.PathLike, config: GenerationConfig = Gene
     )
 
 
-def _generate_into(store_path: Path, config: GenerationConfig, placements: dict, tasks: list, total: int,
-                   workers: int, progress: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Run the chunks, append their lines to `store_path`; return per-example arrays:
-    line start offsets (n + 1), equivalence keys, target lengths, in generation order."""
+def _assign(config: GenerationConfig, labels: np.ndarray, keys: np.ndarray, lengths: np.ndarray,
+            dropped: int) -> SplitResult:
+    """The splits of the candidates `labels` (generation order), from the seed's split stream."""
+    split_rng = np.random.default_rng([config.seed, _STREAM_SPLITS])
+    if config.split_kind == "compositional":
+        return assign_compositional(split_rng, labels, keys, config.percentage_train, config.percentage_dev,
+                                    config.k_shot, dropped)
+    return assign_length(split_rng, lengths, keys, config.cut_off_target_length, config.percentage_train,
+                         config.percentage_dev)
+
+
+def _subset(config: GenerationConfig, placements: dict, chunks: list[_Chunk], labels: np.ndarray, dropped: int,
+            run: _ChunkRunner, progress: bool) -> tuple[SplitResult, np.ndarray]:
+    """The `max_examples` subset: its splits (indices among its examples, generation
+    order) and which candidates it holds (`selected`, over `labels`).
+
+    The full set's draws come first. They need no plans but the length split's target
+    lengths, and the discard of test duplicates of train draws no random numbers, so
+    they are drawn with every key distinct (nothing discarded) and the discard is applied
+    to the sampled test examples alone (`_kept_test`).
+    """
+    lengths = np.zeros(len(labels), dtype=np.int32)
+    if config.split_kind == "length":
+        _, _, lengths = _run_tasks(run, _tasks(chunks, np.ones(len(labels), dtype=bool)), progress)
+    drawn = _assign(config, labels, np.arange(len(labels), dtype=np.uint64), lengths, dropped)
+    chosen = sample_splits(np.random.default_rng([config.seed, _STREAM_SUBSET]), drawn, config.max_examples)
+    splits = dict(chosen.splits, test=_kept_test(config, placements, chunks, drawn, chosen.splits["test"], run,
+                                                 progress))
+    selected = np.zeros(len(labels), dtype=bool)
+    selected[np.concatenate(list(splits.values()))] = True
+    position = np.cumsum(selected) - 1  # candidate index -> index among the subset's examples
+    return replace(chosen, splits={s: position[v] for s, v in splits.items()},
+                   discarded_equivalent=len(chosen.splits["test"]) - len(splits["test"]),
+                   k_shot=tuple(int(position[i]) for i in chosen.k_shot)), selected
+
+
+def _kept_test(config: GenerationConfig, placements: dict, chunks: list[_Chunk], drawn: SplitResult,
+               test: np.ndarray, run: _ChunkRunner, progress: bool) -> np.ndarray:
+    """The candidates of `test` that the full set keeps: those equivalent to none of its
+    train as drawn against test (before dev and the k-shot examples were drawn from it).
+    Equivalent examples share their command and target cell, so only the train
+    candidates of the test candidates' (command, target cell) are planned."""
+    train = drawn.splits["train"]
+    train = np.concatenate([train[:len(train) - len(drawn.k_shot)], drawn.splits["dev"]])
+    cell = {t: np.array([p.target.row * config.grid_size + p.target.col for p in layouts])
+            for t, layouts in placements.items()}
+    group = np.concatenate([c.command_index * config.grid_size ** 2 + np.stack([cell[t] for t in c.targets])
+                            [c.labels != _DROPPED] for c in chunks])  # (command, target cell) per candidate
+    train = train[np.isin(group[train], group[test])]
+    planned = np.zeros(len(group), dtype=bool)
+    planned[test] = planned[train] = True
+    keys = np.zeros(len(group), dtype=np.uint64)
+    _, keys[planned], _ = _run_tasks(run, _tasks(chunks, planned), progress)
+    return discard_equivalent(test, train, keys)
+
+
+def _run_tasks(run: _ChunkRunner, tasks: list, progress: bool,
+               store: BinaryIO | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Plan the tasks' candidates and append their lines to `store`; return per-example
+    arrays in generation order: line start offsets in `store` (n + 1), equivalence keys,
+    target lengths. Without `store`, plan only (keys and lengths; no lines, no offsets)."""
     from tqdm import tqdm
 
+    serialise = store is not None
+    total = sum(int(mask.sum()) for _, _, mask in tasks)
     offsets, keys, lengths = [np.zeros(1, dtype=np.int64)], [np.zeros(0, np.uint64)], [np.zeros(0, np.int32)]
-    with open(store_path, "wb") as store, tqdm(total=total, unit="ex", desc="generate", disable=not progress) as bar:
-        for chunk in _map_chunks(config, placements, tasks, workers):
-            store.write(chunk.data)
+    with tqdm(total=total, unit="ex", desc="generate" if serialise else "plan", disable=not progress) as bar:
+        for chunk in run([(*task, serialise) for task in tasks]):
+            if serialise:
+                store.write(chunk.data)
             offsets.append(chunk.line_lengths)
             keys.append(chunk.keys)
             lengths.append(chunk.target_lengths)

@@ -4,7 +4,7 @@ directory of per-split bags (`generate --format mcap`).
 A per-split bag dataset ends with its manifest (`manifest.json`, the episodes per split),
 written after every bag is closed: a dataset whose manifest names a split without its
 complete bag is refused by every reader (`bag_splits`). Every reader refuses a requested
-split without examples, with the message dataset.txt gives (`require_splits`).
+split without examples, with the message dataset.txt gives (`splits.require_splits`).
 """
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Iterable, Iterator, Mapping
 
 from gscan_ros.data.episode import Episode
+from gscan_ros.data.splits import require_splits
 from gscan_ros.errors import DatasetFormatError
 
 BAG_METADATA = "metadata.yaml"
@@ -34,15 +35,6 @@ def split_bags(path: str | os.PathLike) -> dict[str, Path]:
     if not root.is_dir() or is_bag(root) or (root / "dataset.txt").exists():
         return {}
     return {sub.name: sub for sub in sorted(root.iterdir()) if is_bag(sub)}
-
-
-def require_splits(wanted: Iterable[str], counts: Mapping[str, int], source: str | os.PathLike) -> None:
-    """Refuse requested splits that `source` has no examples of (absent, empty or misspelt),
-    naming them and the splits it has: the one check of dataset.txt and bag readers."""
-    missing = [split for split in wanted if not counts.get(split)]
-    if missing:
-        present = ", ".join(split for split, n in counts.items() if n) or "none"
-        raise DatasetFormatError(f"no examples in split(s) {', '.join(missing)} of {source} (it has: {present})")
 
 
 def write_manifest(folder: str | os.PathLike, counts: Mapping[str, int], header: dict) -> Path:

@@ -3,17 +3,20 @@
 The rules only look at the command, the target object and the direction to the
 target, so they are decided before an example is planned; examples matching more than
 one rule are dropped (as the original generator does). The set operations work on
-arrays of example indices and are driven by one seeded Generator.
+arrays of example indices and are driven by one seeded Generator; `sample_splits`
+draws a subset (`generate --examples`) split by split.
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Iterable, Mapping
 
 import numpy as np
 
 from gscan_ros.data.commands import Command
 from gscan_ros.data.sampling import ObjectSpec
+from gscan_ros.errors import DatasetFormatError
 
 # Released split keys, in the order dataset.txt lists them.
 SPLIT_NAMES = (
@@ -75,7 +78,11 @@ def held_out_splits(command: Command, target: ObjectSpec, direction: str) -> tup
 
 def take_fraction(rng: np.random.Generator, indices: np.ndarray, fraction: float) -> tuple[np.ndarray, np.ndarray]:
     """(rest, taken): int(fraction * n) indices drawn without replacement, both sorted."""
-    count = int(fraction * len(indices))
+    return take(rng, indices, int(fraction * len(indices)))
+
+
+def take(rng: np.random.Generator, indices: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """(rest, taken): `count` indices drawn without replacement, both in their order in `indices`."""
     mask = np.zeros(len(indices), dtype=bool)
     mask[rng.choice(len(indices), size=count, replace=False)] = True
     return indices[~mask], indices[mask]
@@ -137,3 +144,39 @@ def assign_length(rng: np.random.Generator, lengths: np.ndarray, keys: np.ndarra
         splits={"train": train, "dev": dev, "test": kept_test, "target_lengths": long},
         discarded_equivalent=len(test) - len(kept_test),
     )
+
+
+def sample_splits(rng: np.random.Generator, result: SplitResult, size: int) -> SplitResult:
+    """A `size`-example subset of `result`, split by split, so each example keeps its split.
+
+    The k-shot examples stay (train keeps its K "cautiously" examples, last); the other
+    `size - K` are shared out over the splits in proportion to their sizes (largest
+    remainders) and drawn within each split, in the order `result` lists them.
+    """
+    k = len(result.k_shot)
+    pools = {name: indices[:len(indices) - k] if name == "train" else indices
+             for name, indices in result.splits.items()}
+    counts = _apportion(size - k, np.array([len(v) for v in pools.values()], dtype=np.int64))
+    splits = {name: take(rng, indices, int(count))[1] for (name, indices), count in zip(pools.items(), counts)}
+    splits["train"] = np.concatenate([splits["train"], result.splits["train"][len(pools["train"]):]])
+    return SplitResult(splits=splits, dropped_multiple_rules=result.dropped_multiple_rules,
+                       discarded_equivalent=result.discarded_equivalent, k_shot=result.k_shot)
+
+
+def _apportion(total: int, sizes: np.ndarray) -> np.ndarray:
+    """`total` shared out in proportion to `sizes` (Hamilton's largest remainders, in
+    integers): each share within one of its exact quota, none above its size."""
+    if total >= sizes.sum():
+        return sizes
+    quotas, remainders = np.divmod(total * sizes, sizes.sum())
+    quotas[np.argsort(-remainders, kind="stable")[:total - quotas.sum()]] += 1
+    return quotas
+
+
+def require_splits(wanted: Iterable[str], counts: Mapping[str, int], source: str | os.PathLike) -> None:
+    """Refuse requested splits that `source` has no examples of (absent, empty or misspelt),
+    naming them and the splits it has: the one check of dataset.txt and bag readers."""
+    missing = [split for split in wanted if not counts.get(split)]
+    if missing:
+        present = ", ".join(split for split, n in counts.items() if n) or "none"
+        raise DatasetFormatError(f"no examples in split(s) {', '.join(missing)} of {source} (it has: {present})")

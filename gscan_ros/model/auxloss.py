@@ -13,7 +13,6 @@ the choices made here.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,23 +20,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from gscan_ros.errors import quoted
-from gscan_ros.model.seq2seq import AdditiveAttention, DecoderState, Seq2Seq, Seq2SeqBatch, Seq2SeqConfig
-
-
-@dataclass(frozen=True)
-class AuxLossConfig(Seq2SeqConfig):
-    """The baseline's hyper-parameters plus the weight of the target-location loss."""
-
-    target_loss_weight: float = 0.3
-    """Weight of the target-location cross-entropy in the loss (a choice: MM's
-    `--weight_target_loss` default)."""
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        weight = self.target_loss_weight
-        if isinstance(weight, bool) or not isinstance(weight, (int, float)) or not math.isfinite(weight) or weight < 0:
-            raise ValueError(f"target_loss_weight must be a finite number >= 0, got {quoted(weight)}")
+from gscan_ros.model.config import AuxLossConfig
+from gscan_ros.model.decoder import AdditiveAttention, DecoderState, Seq2SeqBatch
+from gscan_ros.model.seq2seq import Seq2Seq
 
 
 @dataclass

@@ -11,12 +11,14 @@ Layout (format 1)::
 Configs and vocabularies are stored as plain dicts/lists, never pickled objects, so a
 checkpoint never executes code on load. A checkpoint whose tensors or vocabulary do not
 fit the model it is loaded into raises `CheckpointError` naming the mismatch.
+
+This module sits above the model kinds: it builds a checkpoint's model through the
+`MODEL_CLASSES` table, and no model kind imports it.
 """
 from __future__ import annotations
 
 import os
 import zipfile
-from dataclasses import asdict, fields
 from pathlib import Path
 
 import torch
@@ -24,9 +26,22 @@ from torch import nn
 
 from gscan_ros.errors import CheckpointError, LexiconError, quoted, shortened
 from gscan_ros.language.lexicon import Lexicon
+from gscan_ros.model.auxloss import AuxLoss
+from gscan_ros.model.compositional import CompositionalNetwork
+from gscan_ros.model.config import AuxLossConfig, LCGNConfig, ModelConfig, Seq2SeqConfig
+from gscan_ros.model.lcgn import LCGN
+from gscan_ros.model.modules import ModuleTable
+from gscan_ros.model.seq2seq import Seq2Seq
 
 FORMAT = 1
-KINDS = ("compositional", "seq2seq", "auxloss", "lcgn")
+MODEL_CLASSES = {model.kind: (model, config) for model, config in [
+    (CompositionalNetwork, ModelConfig),
+    (Seq2Seq, Seq2SeqConfig),
+    (AuxLoss, AuxLossConfig),
+    (LCGN, LCGNConfig),
+]}
+"""Model kind (a checkpoint's "kind", the class's `kind`) -> its model class and config dataclass."""
+KINDS = tuple(MODEL_CLASSES)
 MAX_CHECKPOINT_BYTES = 1 << 30
 """Most bytes a checkpoint may hold, its file and its tensors as its zip declares them: the
 shipped model holds 1.1 MB, a training checkpoint with its optimizer state a few MB."""
@@ -34,40 +49,11 @@ MAX_CHECKPOINT_ENTRIES = 10_000
 """Most files in a checkpoint's zip: one per tensor and a few more (28 in the shipped model)."""
 
 
-class SerializableConfig:
-    """to_dict/from_dict of the frozen config dataclasses that checkpoints store (tuples
-    as lists; unknown keys are a CheckpointError)."""
-
-    def to_dict(self) -> dict:
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
-
-    @classmethod
-    def from_dict(cls, d: dict):
-        unknown = sorted(set(d) - {f.name for f in fields(cls)})
-        if unknown:
-            raise CheckpointError(f"unknown {cls.__name__} keys {quoted(unknown)}")
-        return cls(**d)
-
-
 def model_classes(kind: str) -> tuple[type, type]:
     """The model class of `kind` and its config dataclass; CheckpointError for an unknown kind."""
-    if kind == "compositional":
-        from gscan_ros.model.compositional import CompositionalNetwork, ModelConfig
-
-        return CompositionalNetwork, ModelConfig
-    if kind == "seq2seq":
-        from gscan_ros.model.seq2seq import Seq2Seq, Seq2SeqConfig
-
-        return Seq2Seq, Seq2SeqConfig
-    if kind == "auxloss":
-        from gscan_ros.model.auxloss import AuxLoss, AuxLossConfig
-
-        return AuxLoss, AuxLossConfig
-    if kind == "lcgn":
-        from gscan_ros.model.lcgn import LCGN, LCGNConfig
-
-        return LCGN, LCGNConfig
-    raise CheckpointError(f"unknown model kind {quoted(kind)}; expected one of {KINDS}")
+    if kind not in KINDS:  # a tuple: a checkpoint's kind may be any value, hashable or not
+        raise CheckpointError(f"unknown model kind {quoted(kind)}; expected one of {KINDS}")
+    return MODEL_CLASSES[kind]
 
 
 def build_model(kind: str, model_config: dict, vocabulary: dict) -> nn.Module:
@@ -75,20 +61,12 @@ def build_model(kind: str, model_config: dict, vocabulary: dict) -> nn.Module:
     compositional network's modules)."""
     model_class, config_class = model_classes(kind)
     if kind == "compositional":
-        from gscan_ros.model.modules import ModuleTable
-
         return model_class(config_class.from_dict(model_config), ModuleTable.from_list(vocabulary["modules"]))
     return model_class(config_class.from_dict(model_config), list(vocabulary["tokens"]))
 
 
-def model_kind(model: nn.Module) -> str:
-    from gscan_ros.model.compositional import CompositionalNetwork
-
-    return "compositional" if isinstance(model, CompositionalNetwork) else model.kind
-
-
 def model_vocabulary(model: nn.Module) -> dict:
-    if model_kind(model) == "compositional":
+    if model.kind == "compositional":
         return {"modules": model.table.to_list()}
     return {"tokens": list(model.tokens)}
 
@@ -97,7 +75,7 @@ def checkpoint_dict(model: nn.Module, *, parser: str, lexicon: Lexicon, step: in
                     **training_state) -> dict:
     return {
         "format": FORMAT,
-        "kind": model_kind(model),
+        "kind": model.kind,
         "model_config": model.cfg.to_dict(),
         "vocabulary": model_vocabulary(model),
         "lexicon": lexicon.to_dict(),
@@ -183,8 +161,6 @@ def validate_checkpoint(ckpt: dict, path: str | os.PathLike) -> None:
     if not isinstance(vocabulary, list) or not vocabulary:
         raise CheckpointError(f"{where}: empty vocabulary (no {entries})")
     if kind == "compositional":
-        from gscan_ros.model.modules import ModuleTable
-
         for spec in ModuleTable.from_list(vocabulary).specs:
             if spec.arity < 0 or spec.num_heads < 1:
                 raise CheckpointError(f"{where}: module {quoted(spec.key)} has arity {spec.arity} and "
@@ -226,8 +202,8 @@ def restore_model(ckpt: dict, model: nn.Module | None = None) -> nn.Module:
     if model is None:
         model = build_model(ckpt["kind"], ckpt["model_config"], ckpt["vocabulary"])
     else:
-        if model_kind(model) != ckpt["kind"]:
-            raise CheckpointError(f"checkpoint holds a {ckpt['kind']} model, not a {model_kind(model)} model")
+        if model.kind != ckpt["kind"]:
+            raise CheckpointError(f"checkpoint holds a {ckpt['kind']} model, not a {model.kind} model")
         # settings added after the checkpoint was written take their defaults
         saved = type(model.cfg).from_dict(ckpt["model_config"]).to_dict()
         if model.cfg.to_dict() != saved:

@@ -8,15 +8,16 @@ Every word w of a parse is a module with its own GRU; at time step t, bottom-up,
     o_t^w, h_t^w  = GRU^w(Σ_cells obs_t ⊙ att_t^w, h_{t-1}^w)
 
 and the root's output gives the action. `step` is that loop for a whole batch of
-different graphs at once. How the batch is laid out, and the faster equivalents of the
-plain computations, live beside this file:
+different graphs at once; `Rollout` runs it closed loop, one step per world state. The
+hyper-parameters are `config.ModelConfig`, obs_t comes from `encoders.VisualEncoder` (which
+the baselines share). How the batch is laid out, and the faster equivalents of the plain
+computations, live beside this file:
 
 - `modules.py`: the module table (one module per key of the parses: arity, heads, antonyms);
 - `layout.py`: graphs as rows of slots grouped by level, parameters gathered per slot (`Bound`);
 - `sparse_encoder.py`: the convolutions as one embedding bag over the set input bits;
 - `teacher_forcing.py`: every step's loss of a batch of episodes, all maps at once when it can;
 - `fast_ops.py`: custom autograd functions (incl. a GRU's recurrence over packed steps), the dropout mask;
-- `rollout.py`: closed-loop decoding, one step per world state;
 - `reference.py`: the same network graph by graph, node by node, the test oracle.
 
 The hidden-state input of an attention is broadcast over the cells and cancels in its
@@ -29,156 +30,18 @@ import math
 from dataclasses import dataclass
 from typing import Sequence
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from gscan_ros.errors import quoted
 from gscan_ros.language.graph import CommandGraph
-from gscan_ros.model.checkpoint import SerializableConfig
+from gscan_ros.model.config import ModelConfig
+from gscan_ros.model.encoders import VisualEncoder
 from gscan_ros.model.layout import Bound, Layout, child_maps
 from gscan_ros.model.modules import ModuleTable
-from gscan_ros.model.rollout import Rollout
-from gscan_ros.model.sparse_encoder import SparseConv
+from gscan_ros.model.sparse_encoder import sparse_states
 from gscan_ros.model.teacher_forcing import TeacherBatch, TeacherOutput, all_steps, level_major, stepwise
-from gscan_ros.world.types import GRID_SIZE, NUM_CHANNELS, SUPPORTED_GRID_SIZES, Action
-
-MESSAGES = ("attention", "state", "attention+state")
-ATTENTION_STATES = ("broadcast", "add")
-SIZE_MAPS = ("softmax", "minmax")
-OVERLAPS = ("minmax", "cosine")
-
-
-# --------------------------------------------------------------------------- config
-@dataclass(frozen=True)
-class ModelConfig(SerializableConfig):
-    """Hyper-parameters of the compositional network (defaults: CG `config_train.yaml`)."""
-
-    grid_size: int = GRID_SIZE
-    """Side of the square grid; the CNN keeps it ('same' padding), 36 cells for gSCAN."""
-    in_channels: int = NUM_CHANNELS
-    """Channels of the one-hot observation (16 in the released order, LauraRuis/groundedSCAN `Grid.encode`)."""
-    cnn_kernels: tuple[int, ...] = (1, 5, 7)
-    """Kernel sizes of the parallel conv branches (CG: 1, 5 and `cnn_kernel_size` 7)."""
-    cnn_channels: int = 50
-    """Output channels per conv branch; cell features have len(cnn_kernels) * this."""
-    cnn_dropout: float = 0.1
-    """Dropout on the concatenated, ReLU'd cell features (training only)."""
-    att_dim: int = 10
-    """Width each attention input (weighted features per slot, hidden state) is projected to."""
-    rnn_layers: int = 2
-    """GRU layers per word module; every layer's state feeds the module's attention."""
-    rnn_dim: int = 20
-    """GRU hidden size per layer (CG main config 20; its no-attention config uses 40)."""
-    message: str = "attention"
-    """What children pass to parents: 'attention' maps (paper), 'state' (hidden states, no
-    attention at all: CG `no_attention`), or 'attention+state' (CG `pass_state`)."""
-    antonym_weight: float = 1.0
-    """Weight of the antonym overlap loss (CG `compare_weight`); 0 disables the term."""
-    attention_state: str = "broadcast"
-    """How a module's previous state enters its attention MLP. 'broadcast' (CG's
-    `AttentionArgN`): projected, concatenated after the arguments' projections and broadcast over the
-    cells, where it cancels in the softmax. 'add': added to every argument's projection
-    before the ReLU, so the module's own state shapes its map (one reading of the paper's
-    "mapped to the same dimension before being combined"). Same parameters either way;
-    'add' runs every module's GRU and trains step by step."""
-    size_map: str = "softmax"
-    """The map an antonym-pair module (big|small) passes to its parent: its 'softmax'
-    attention (this project's default), or 'minmax': the min-max normalised map of the
-    overlap loss, as the original code passes it (CG `SentenceNetwork.loss`; quirk Q16, docs/model.md) and as the
-    published numbers were produced."""
-    overlap: str = "minmax"
-    """How the antonym overlap loss compares a word's map with its antonym head's:
-    'minmax' (CG `SentenceNetwork.loss`): Σ_cells minmax(a)·minmax(b) / cells, which a
-    flat map satisfies for free (it normalises to zeros) — the way out Dependency's "small"
-    head takes (docs/results.md, "The size words"); 'cosine': Σ a·b / (|a| |b|) of the maps
-    as passed, which is 0 only for maps on disjoint cells, so a flat head pays for it
-    (1/√cells against a one-hot map)."""
-    num_actions: int = len(Action)
-    """Output classes: the six gSCAN actions plus EOS, ids = `Action` values."""
-
-    def __post_init__(self) -> None:
-        if self.message not in MESSAGES:
-            raise ValueError(f"message must be one of {MESSAGES}, got {quoted(self.message)}")
-        if self.attention_state not in ATTENTION_STATES:
-            raise ValueError(f"attention_state must be one of {ATTENTION_STATES}, got {quoted(self.attention_state)}")
-        if self.size_map not in SIZE_MAPS:
-            raise ValueError(f"size_map must be one of {SIZE_MAPS}, got {quoted(self.size_map)}")
-        if self.overlap not in OVERLAPS:
-            raise ValueError(f"overlap must be one of {OVERLAPS}, got {quoted(self.overlap)}")
-        if self.attention_state == "add" and not self.uses_attention:
-            raise ValueError("attention_state='add' needs attention maps; message='state' has none")
-        # Sizes come from YAML and checkpoints: a list, a float or a negative fails here, not in torch.
-        for name in ("grid_size", "in_channels", "cnn_channels", "att_dim", "rnn_layers", "rnn_dim", "num_actions"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be a positive integer, got {quoted(value)}")
-        if self.grid_size not in SUPPORTED_GRID_SIZES:
-            raise ValueError(f"grid_size {self.grid_size} is not supported "
-                             f"({SUPPORTED_GRID_SIZES[0]} to {SUPPORTED_GRID_SIZES[-1]})")
-        kernels = self.cnn_kernels
-        if not (isinstance(kernels, (list, tuple)) and kernels
-                and all(isinstance(k, int) and not isinstance(k, bool) and k > 0 for k in kernels)):
-            raise ValueError(f"cnn_kernels must be a non-empty list of positive integers, got {quoted(kernels)}")
-        object.__setattr__(self, "cnn_kernels", tuple(kernels))
-        if any(k % 2 == 0 for k in self.cnn_kernels):
-            raise ValueError(f"cnn_kernels must be odd for 'same' padding, got {quoted(self.cnn_kernels)}")
-        if not (isinstance(self.cnn_dropout, (int, float)) and 0 <= self.cnn_dropout < 1):
-            raise ValueError(f"cnn_dropout must be a number in [0, 1), got {quoted(self.cnn_dropout)}")
-        if not (isinstance(self.antonym_weight, (int, float)) and 0 <= self.antonym_weight < math.inf):
-            raise ValueError(f"antonym_weight must be a finite number >= 0, got {quoted(self.antonym_weight)}")
-
-    @property
-    def feature_dim(self) -> int:
-        return self.cnn_channels * len(self.cnn_kernels)
-
-    @property
-    def cells(self) -> int:
-        return self.grid_size * self.grid_size
-
-    @property
-    def uses_attention(self) -> bool:
-        return self.message != "state"
-
-    @property
-    def passes_state(self) -> bool:
-        return self.message != "attention"
-
-    @property
-    def state_in_attention(self) -> bool:
-        """A module's state changes its map (so every module's GRU matters)."""
-        return self.attention_state == "add"
-
-    @property
-    def runs_every_gru(self) -> bool:
-        """Every slot's GRU runs, block by block; otherwise only the root's (see `step`)."""
-        return self.passes_state or self.state_in_attention
-
-
-# ------------------------------------------------------------------- visual encoder
-class VisualEncoder(nn.Module):
-    """obs_t: three parallel 'same' conv branches -> concat -> ReLU -> dropout, one vector per cell."""
-
-    def __init__(self, cfg: ModelConfig):
-        super().__init__()
-        self.cfg = cfg
-        self.convs = nn.ModuleList(
-            nn.Conv2d(cfg.in_channels, cfg.cnn_channels, k, padding=k // 2) for k in cfg.cnn_kernels
-        )
-        self.dropout = nn.Dropout(cfg.cnn_dropout)
-        self.sparse = SparseConv(cfg.grid_size, cfg.in_channels, cfg.feature_dim)  # no parameters of its own
-
-    def dense(self, states: torch.Tensor) -> torch.Tensor:
-        """The definition, on float/uint8 [N, g, g, C] states -> [N, cells, F]."""
-        x = states.to(self.convs[0].weight.dtype).permute(0, 3, 1, 2)
-        feats = torch.cat([conv(x) for conv in self.convs], 1)
-        return self.dropout(F.relu(feats)).flatten(2).transpose(1, 2)
-
-    def forward(self, indices: torch.Tensor, offsets: torch.Tensor, groups: torch.Tensor | None = None) -> torch.Tensor:
-        """`dense` on set-bit bags of the states (see `sparse_states` and `SparseConv`), ~20x
-        fewer multiply-adds; `groups` [N] names each state's episode (-1: none)."""
-        dropout = self.cfg.cnn_dropout if self.training else 0.0
-        return self.sparse(self.convs, indices, offsets, groups, dropout)
 
 
 # ---------------------------------------------------------------------- module bank
@@ -245,6 +108,8 @@ class StepResult:
 
 class CompositionalNetwork(nn.Module):
     """Visual encoder + word-module bank; runs any batch of parse graphs."""
+
+    kind = "compositional"
 
     def __init__(self, cfg: ModelConfig, table: ModuleTable):
         super().__init__()
@@ -417,3 +282,42 @@ def minmax_normalize(maps: torch.Tensor) -> torch.Tensor:
     rng = hi - lo
     return ((maps - lo) / torch.where(rng > 0, rng, torch.ones_like(rng)) + 1e-5).clamp(0.0, 1.0)
 
+
+# -------------------------------------------------------------------- closed loop
+class Rollout:
+    """Closed-loop decoding state of a batch of graphs: feed observations, read action logits.
+
+    The network conditions on world states only, never on its past actions. `keep(rows)`
+    drops finished rows so later steps only pay for live episodes.
+    """
+
+    def __init__(self, net: CompositionalNetwork, graphs: Sequence[CommandGraph]):
+        layout = net.layout(graphs)
+        self.net = net
+        self.bound = net.bind(layout)
+        self.hidden = net.initial_hidden(layout.batch, layout.num_slots)
+        self.words = layout.words  # per row: (slot, word) of the graph's nodes
+
+    def step(self, observations: np.ndarray) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """uint8 [n, g, g, C] -> (logits [n, actions], attention maps [n, J, cells] or None)."""
+        feats = self.net.encoder(*sparse_states(observations, self.net.device))
+        res = self.net.step(self.bound, self.hidden, feats)
+        self.hidden = res.hidden
+        return res.logits, res.maps
+
+    def word_maps(self, maps: torch.Tensor, row: int) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+        """Row `row` of `step`'s maps as float32 [g, g] grids: word -> its map, and word -> the
+        map of its antonym head run on the same inputs (words of antonym pairs only)."""
+        g = self.net.cfg.grid_size
+        grids = maps[row].reshape(-1, g, g).cpu().numpy().astype(np.float32)
+        word_of = dict(self.words[row])
+        readout = self.bound.readout
+        pairs, mask = readout.antonym_pairs[row].tolist(), readout.pair_mask[row].tolist()
+        return ({word: grids[slot] for slot, word in word_of.items()},
+                {word_of[slot]: grids[shadow] for (slot, shadow), m in zip(pairs, mask) if m})
+
+    def keep(self, rows: torch.Tensor) -> None:
+        self.words = [self.words[i] for i in rows.tolist()]
+        rows = rows.to(self.hidden.device)
+        self.bound = self.bound.select(rows)
+        self.hidden = self.hidden.index_select(0, rows)

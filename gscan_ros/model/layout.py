@@ -10,6 +10,9 @@ module's own weight). Padding slots compute throw-away values that nothing reads
 
 A word of an antonym pair (big|small) also gets a *shadow* slot in its level: the
 antonym's attention head run on the word's inputs and state, for the overlap loss.
+
+A `bank` here is the network's `WordModuleBank` (compositional.py, which uses this module;
+typed as a plain nn.Module so that this module does not import the network back).
 """
 from __future__ import annotations
 
@@ -20,13 +23,13 @@ from typing import TYPE_CHECKING, Callable, NamedTuple, Sequence
 
 import numpy as np
 import torch
+from torch import nn
 
 from gscan_ros.errors import GraphError
 from gscan_ros.language.graph import CommandGraph
 from gscan_ros.model.fast_ops import gru_cell
 
 if TYPE_CHECKING:
-    from gscan_ros.model.compositional import WordModuleBank
     from gscan_ros.model.modules import ModuleTable
 
 
@@ -210,7 +213,7 @@ class Bound:
     """
 
     def __init__(self, blocks: list[SlotBlock], readout: Readout, num_slots: int,
-                 spans: list[tuple[int, int]], bank: "WordModuleBank"):
+                 spans: list[tuple[int, int]], bank: nn.Module):
         self.blocks, self.readout, self.num_slots, self.spans, self.bank = blocks, readout, num_slots, spans, bank
         if bank.cfg.runs_every_gru:  # GRUs run level by level (see CompositionalNetwork.step)
             self.gru = [GruGroups(blk.gru_module, bank) for blk in blocks]
@@ -219,7 +222,7 @@ class Bound:
         self._feat_w: list[torch.Tensor | None] = [None] * len(blocks)
 
     @classmethod
-    def gather(cls, layout: Layout, bank: "WordModuleBank") -> "Bound":
+    def gather(cls, layout: Layout, bank: nn.Module) -> "Bound":
         """Every slot's parameters of `layout` gathered from `bank` (on the bank's device)."""
         cfg, device = bank.cfg, bank.out_w.device
         A, L, H = cfg.att_dim, cfg.rnn_layers, cfg.rnn_dim
@@ -358,7 +361,7 @@ class GruLayerWeights(NamedTuple):
 class GruGroups(SlotGroups):
     """Real slots by module, with the modules' GRU weights gathered once per grouping."""
 
-    def __init__(self, gru_module: torch.Tensor, bank: "WordModuleBank"):
+    def __init__(self, gru_module: torch.Tensor, bank: nn.Module):
         super().__init__(gru_module)
         self.layers = [GruLayerWeights(bank.gru_x[layer].index_select(0, self.keys),
                                        bank.gru_h[layer].index_select(0, self.keys),

@@ -10,69 +10,24 @@ concatenated. Round t: a textual command c_t = attention over the command's word
 query of the round's own (W2_t relu(W3 final)); each node i receives the message
 Σ_j softmax_j(dst_i · src_j) val_j from every other node j, with src and val gated by c_t,
 and updates its context x_ctx. The nodes' outputs W [x_loc; x_ctx] go back to their cells
-(empty cells are zero), the 3-branch CNN encodes that grid, and MM's decoder (`seq2seq`)
+(empty cells are zero), the 3-branch CNN encodes that grid, and MM's decoder (`decoder.py`)
 attends over its cells and the command; its logits read the LSTM state alone. The graph
 is batched dense over all cells, with masks for empty cells and self-edges.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import torch
 from torch import nn
 
-from gscan_ros.model.checkpoint import SerializableConfig
-from gscan_ros.model.compositional import ModelConfig, VisualEncoder
-from gscan_ros.model.seq2seq import AdditiveAttention, AttentionDecoderModel, DecoderState, check_settings, packed_lstm
-from gscan_ros.world.types import COLORS, GRID_SIZE, NUM_CHANNELS, SHAPES, SIZES, Action
+from gscan_ros.model.config import LCGNConfig, ModelConfig
+from gscan_ros.model.decoder import AdditiveAttention, AttentionDecoderModel, DecoderState
+from gscan_ros.model.encoders import VisualEncoder, packed_lstm
+from gscan_ros.world.types import COLORS, NUM_CHANNELS, SHAPES, SIZES
 
 # The 16 observation channels in attribute groups (the released order): sizes, shapes, colours,
 # agent + its four headings.
 ATTRIBUTE_CHANNELS = (len(SIZES), len(SHAPES), len(COLORS), NUM_CHANNELS - len(SIZES) - len(SHAPES) - len(COLORS))
-
-
-@dataclass(frozen=True)
-class LCGNConfig(SerializableConfig):
-    """Hyper-parameters of LCGN (defaults: the original's `model/config.py`)."""
-
-    embedding_dim: int = 32
-    """Command-token embedding width (CMD_D_EMBED)."""
-    command_dim: int = 64
-    """BiLSTM output width, both directions concatenated (CMD_D_ENC); even."""
-    attribute_dim: int = 16
-    """Width of each of the four attribute embeddings; a node's input is 4x this."""
-    node_dim: int = 64
-    """Width of the node features, contexts, messages and outputs (SITU_D_CTX)."""
-    rounds: int = 4
-    """Message-passing rounds T (MSG_ITER_NUM)."""
-    cnn_kernels: tuple[int, ...] = (1, 5, 7)
-    """Kernel sizes of the CNN over the grid of node outputs."""
-    cnn_channels: int = 64
-    """Channels per conv branch (SITU_D_CNN_OUTPUT)."""
-    cnn_dropout: float = 0.1
-    """Dropout on the cell features."""
-    hidden: int = 64
-    """Decoder LSTM width and its attentions' width (DEC_D_H)."""
-    embedding_dropout: float = 0.2
-    """Dropout on the command-token embeddings (1 - encInputDropout)."""
-    command_dropout: float = 0.08
-    """Dropout on the encoder's final state (1 - cmdDropout)."""
-    read_dropout: float = 0.15
-    """Dropout on the node features where a round reads them (1 - readDropout)."""
-    dropout: float = 0.15
-    """Dropout on the previous action's embedding (1 - decoderDropout)."""
-    num_actions: int = len(Action)
-    """Output classes: six actions + EOS (`Action` values)."""
-    grid_size: int = GRID_SIZE
-    """Side of the square grid the observations have (6 compositional, 12 for split I)."""
-
-    def __post_init__(self) -> None:
-        check_settings(self, ("embedding_dim", "command_dim", "attribute_dim", "node_dim", "rounds", "cnn_channels",
-                              "hidden", "num_actions", "grid_size"),
-                       ("cnn_dropout", "embedding_dropout", "command_dropout", "read_dropout", "dropout"))
-        if self.command_dim % 2:
-            raise ValueError(f"command_dim must be even (two LSTM directions), got {self.command_dim}")
 
 
 class LanguageConditionedGraph(nn.Module):

@@ -18,7 +18,6 @@ from gscan_ros.errors import CheckpointError, GraphError
 from gscan_ros.language.graph import CommandGraph
 from gscan_ros.language.lexicon import Lexicon
 from gscan_ros.model.checkpoint import checkpoint_lexicon, read_checkpoint, restore_model
-from gscan_ros.model.runtime import resolve_device
 from gscan_ros.world.types import NUM_CHANNELS, Action
 
 DEFAULT_CHECKPOINT = "default_model.pt"
@@ -55,10 +54,10 @@ class Policy:
 
     @classmethod
     def from_checkpoint(cls, path: str | os.PathLike | None = None, device: str | torch.device = "cpu") -> "Policy":
-        """Load a checkpoint (None: the shipped default model) onto `device` ('cpu', 'cuda',
-        'auto'; see `runtime.resolve_device`); CheckpointError if unusable."""
+        """Load a checkpoint (None: the shipped default model) onto `device`, as torch names it
+        (the launcher picks it: `gscan_ros.runtime.resolve_device`); CheckpointError if unusable."""
         ckpt = read_checkpoint(default_checkpoint_path() if path is None else path)
-        model = restore_model(ckpt).to(resolve_device(device))
+        model = restore_model(ckpt).to(device)
         meta = {"step": ckpt.get("step", 0), "metrics": ckpt.get("metrics", {}), "kind": ckpt["kind"]}
         return cls(model, str(ckpt["parser"]), checkpoint_lexicon(ckpt), meta)
 
@@ -84,7 +83,7 @@ class Policy:
 
     @torch.no_grad()
     def rollout(self, graphs: list[CommandGraph]):
-        """A batched closed-loop decoder for `graphs` (see `rollout.Rollout`)."""
+        """A batched closed-loop decoder for `graphs` (`compositional.Rollout`, `decoder.Seq2SeqRollout`)."""
         return self.model.rollout(graphs)
 
     # ---- single-episode API (ROS policy node)

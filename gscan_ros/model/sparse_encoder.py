@@ -4,7 +4,7 @@ The input is one-hot, so each 'same' convolution on the g x g grid is a fixed li
 from the g*g*C input bits to the g*g*F features: a Toeplitz matrix assembled from the
 conv weights once per call, against which a state's features are the sum of the rows of
 its ~20 set bits (of 576 on 6x6), about 20x fewer multiply-adds than the dense conv.
-`VisualEncoder.dense` (compositional.py) is the plain Conv2d form; the two agree to float
+`VisualEncoder.dense` (encoders.py) is the plain Conv2d form; the two agree to float
 rounding (tests/test_model_reference.py, tests/test_model_fastpaths.py).
 
 On larger grids the Toeplitz matrix grows as cells^2 (50M entries on 12x12), and building

@@ -13,20 +13,21 @@ With attention_state='add' a module's state moves its own map, so `stepwise` run
 batch step by step through `CompositionalNetwork.step`, as the closed loop does. All
 give the loss, logits and gradients of the plain per-graph network
 (tests/test_model_reference.py).
+
+`net` is the `CompositionalNetwork` and `bank` its `WordModuleBank` (compositional.py, which
+calls these functions; typed as plain nn.Modules so that this module does not import the
+network back).
 """
 from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import torch
+from torch import nn
 
 from gscan_ros.model.fast_ops import ContiguousGrad, GruRecurrence, SegmentMatmul
 from gscan_ros.model.layout import Bound, Layout, child_maps
-
-if TYPE_CHECKING:
-    from gscan_ros.model.compositional import CompositionalNetwork, WordModuleBank
 
 
 @dataclass
@@ -58,13 +59,15 @@ class TeacherBatch:
 
 @dataclass
 class TeacherOutput:
+    """A teacher-forcing pass of any model kind (the attention decoder's overlap is zero)."""
+
     loss: torch.Tensor
     logits: torch.Tensor  # [steps, actions], packed time-major
     nll: torch.Tensor  # [steps]
     overlap: torch.Tensor  # [steps], unweighted
 
 
-def all_steps(net: "CompositionalNetwork", batch: TeacherBatch) -> TeacherOutput:
+def all_steps(net: nn.Module, batch: TeacherBatch) -> TeacherOutput:
     """Every packed step at once: the features and maps row-major (episodes' steps
     consecutive), then the root GRU over time (`_root_gru_logits`) and the loss in
     time-major order."""
@@ -80,7 +83,7 @@ def all_steps(net: "CompositionalNetwork", batch: TeacherBatch) -> TeacherOutput
     return net.loss(batch, logits, _overlap(net, bound, maps, rm))
 
 
-def level_major(net: "CompositionalNetwork", batch: TeacherBatch) -> TeacherOutput:
+def level_major(net: nn.Module, batch: TeacherBatch) -> TeacherOutput:
     """Every slot's GRU, level by level (children's new states feed their parents at the
     same step), each level's input gates for all steps at once (`_level_grus`). The
     GRU's own input is the map-weighted features (all maps computed at once, as in
@@ -105,7 +108,7 @@ def level_major(net: "CompositionalNetwork", batch: TeacherBatch) -> TeacherOutp
     return net.loss(batch, groups.linear(root_h, net.bank.out_w, net.bank.out_b), overlap)
 
 
-def stepwise(net: "CompositionalNetwork", batch: TeacherBatch) -> TeacherOutput:
+def stepwise(net: nn.Module, batch: TeacherBatch) -> TeacherOutput:
     """Step by step through `step` (every slot's GRU runs; any configuration)."""
     bound = net.bind(batch.layout)
     feats = net.encoder(batch.indices, batch.offsets)
@@ -130,7 +133,7 @@ def stepwise(net: "CompositionalNetwork", batch: TeacherBatch) -> TeacherOutput:
     return net.loss(batch, torch.cat(logits), torch.cat(overlaps))
 
 
-def _all_maps(net: "CompositionalNetwork", bound: Bound, feats: torch.Tensor, rm: "_RowMajor") -> torch.Tensor:
+def _all_maps(net: nn.Module, bound: Bound, feats: torch.Tensor, rm: "_RowMajor") -> torch.Tensor:
     """[N, J, cells]: the map every slot passes on at every step, row-major, level by
     level from the projections of all steps (`_projections`)."""
     rows, n, cells = rm.rows, feats.shape[0], net.cfg.cells
@@ -144,7 +147,7 @@ def _all_maps(net: "CompositionalNetwork", bound: Bound, feats: torch.Tensor, rm
     return torch.cat(maps_done[1:], 1)
 
 
-def _overlap(net: "CompositionalNetwork", bound: Bound, maps: torch.Tensor, rm: "_RowMajor") -> torch.Tensor:
+def _overlap(net: nn.Module, bound: Bound, maps: torch.Tensor, rm: "_RowMajor") -> torch.Tensor:
     """[N] antonym overlap of every step, time-major, from row-major maps."""
     readout = bound.readout
     if not readout.antonym_pairs.shape[1]:
@@ -154,7 +157,7 @@ def _overlap(net: "CompositionalNetwork", bound: Bound, maps: torch.Tensor, rm: 
     return overlap.index_select(0, rm.to_time_major)
 
 
-def _level_grus(bank: "WordModuleBank", bound: Bound, batch: TeacherBatch, x: torch.Tensor) -> torch.Tensor:
+def _level_grus(bank: nn.Module, bound: Bound, batch: TeacherBatch, x: torch.Tensor) -> torch.Tensor:
     """[N, J, L*H]: every slot's new state (all layers) at every packed step (time-major),
     from the GRUs' own inputs x [N, J or 1, F].
 
@@ -192,7 +195,7 @@ def _level_grus(bank: "WordModuleBank", bound: Bound, batch: TeacherBatch, x: to
     return torch.cat(levels[1:], 1)
 
 
-def _root_gru_logits(bank: "WordModuleBank", x: torch.Tensor, batch: TeacherBatch,
+def _root_gru_logits(bank: nn.Module, x: torch.Tensor, batch: TeacherBatch,
                      root_module: torch.Tensor) -> torch.Tensor:
     """Action logits [N, actions] of the root's GRU over its inputs x [N, F], packed time-major.
 
@@ -213,7 +216,7 @@ def _root_gru_logits(bank: "WordModuleBank", x: torch.Tensor, batch: TeacherBatc
     return groups.linear(inp, bank.out_w, bank.out_b)
 
 
-def _projections(bank: "WordModuleBank", bound: Bound, feats: torch.Tensor, sizes: list[int]) -> torch.Tensor:
+def _projections(bank: nn.Module, bound: Bound, feats: torch.Tensor, sizes: list[int]) -> torch.Tensor:
     """[N, cells, P]: every slot's feature projection at every step, for row-major
     features (row b's steps are `sizes[b]` consecutive entries); block l holds its
     share k*S_l*A of P (`Bound.proj_widths`, `_block_projections`).

@@ -51,7 +51,7 @@ from gscan_ros.nodes.common import (
     quote,
 )
 from gscan_ros.world.types import Action
-from msg_adapters import msg_to_action, msg_to_episode_status, msg_to_graph
+from msg_adapters import cdr_to_action, cdr_to_episode_status, cdr_to_graph, cdr_to_text, text_to_cdr
 
 READY_TIMEOUT_S = 60.0
 # After the end report: how long to wait for the episode's last actions and its graph
@@ -91,7 +91,8 @@ class EpisodeResult:
     episode_id: str = ""  # the policy's id of the episode (its `episode_status` goal id)
     sent_ns: int = 0  # wall clock when the command was published
     action_times_ns: list[int] = field(default_factory=list)  # when each action was received (DDS)
-    attention: dict[str, list[Image]] = field(default_factory=dict)  # word -> mono8 maps, for watched words
+    # word -> serialized mono8 maps (msg_adapters.cdr_to_attention), for watched words
+    attention: dict[str, list[bytes]] = field(default_factory=dict)
 
     @property
     def steps(self) -> int:
@@ -129,16 +130,17 @@ class GscanCommander(Node):
         self._executor.add_node(self)
         self.status_log: list[str] = []  # every status line since the commander started
         self._actions: list[tuple[int, int, Action]] = []  # (source ns, received ns, action) since the last send
-        self._graphs: list[tuple[int, String]] = []  # (source ns, msg) since the last send
+        self._graphs: list[tuple[int, bytes]] = []  # (source ns, serialized graph) since the last send
         self._reports: list[tuple[int, es.EpisodeStatus]] = []  # (source ns, report) since the last send
-        self._attention: dict[str, list[tuple[int, Image]]] = {}
+        self._attention: dict[str, list[tuple[int, bytes]]] = {}
         self._command_pub = self.create_publisher(String, COMMAND, qos_profile(interface.COMMAND))
         self._reset_client = self.create_client(Trigger, RESET_WORLD)
-        self.create_subscription(String, ACTION, self._on_action, qos_profile(interface.ACTION))
-        self.create_subscription(String, STATUS, self._on_status, qos_profile(interface.STATUS))
-        self.create_subscription(GoalStatus, EPISODE_STATUS, self._on_report, qos_profile(interface.EPISODE_STATUS))
+        self.create_subscription(String, ACTION, self._on_action, qos_profile(interface.ACTION), raw=True)
+        self.create_subscription(String, STATUS, self._on_status, qos_profile(interface.STATUS), raw=True)
+        self.create_subscription(GoalStatus, EPISODE_STATUS, self._on_report, qos_profile(interface.EPISODE_STATUS),
+                                 raw=True)
         self.create_subscription(String, COMMAND_GRAPH, self._on_graph,
-                                 qos_profile(interface.COMMAND_GRAPH, depth=interface.LOG_DEPTH))
+                                 qos_profile(interface.COMMAND_GRAPH, depth=interface.LOG_DEPTH), raw=True)
         self.watch_attention(attention_words)
 
     @classmethod
@@ -160,27 +162,31 @@ class GscanCommander(Node):
         for word in words:
             if word not in self._attention:
                 self._attention[word] = []
-                self.create_subscription(Image, attention_topic(word), self._attention_sink(word), VIEWER_LOG_QOS)
+                self.create_subscription(Image, attention_topic(word), self._attention_sink(word), VIEWER_LOG_QOS,
+                                         raw=True)
 
     def _attention_sink(self, word: str) -> Callable:
-        return lambda msg, info: self._attention[word].append((info["source_timestamp"], msg))
+        return lambda data, info: self._attention[word].append((info["source_timestamp"], data))
 
-    def _on_action(self, msg: String, info: dict) -> None:
+    def _on_action(self, data: bytes, info: dict) -> None:
         try:
-            action = msg_to_action(msg)
+            action = cdr_to_action(data)
         except GscanError:
             return  # not an action; the world simulator reports it
         self._actions.append((info["source_timestamp"], info["received_timestamp"], action))
 
-    def _on_status(self, msg: String) -> None:
-        self.status_log.append(msg.data)
-
-    def _on_graph(self, msg: String, info: dict) -> None:
-        self._graphs.append((info["source_timestamp"], msg))
-
-    def _on_report(self, msg: GoalStatus, info: dict) -> None:
+    def _on_status(self, data: bytes) -> None:
         try:
-            self._reports.append((info["source_timestamp"], msg_to_episode_status(msg)))
+            self.status_log.append(cdr_to_text(data))
+        except GscanError:
+            return  # not a serialized String
+
+    def _on_graph(self, data: bytes, info: dict) -> None:
+        self._graphs.append((info["source_timestamp"], data))
+
+    def _on_report(self, data: bytes, info: dict) -> None:
+        try:
+            self._reports.append((info["source_timestamp"], cdr_to_episode_status(data)))
         except GscanError:
             return  # not a report of the stack's
 
@@ -241,7 +247,7 @@ class GscanCommander(Node):
         for maps in self._attention.values():
             maps.clear()
         sent_ns = time.time_ns()
-        self._command_pub.publish(String(data=text))
+        self._command_pub.publish(text_to_cdr(text))
         return sent_ns
 
     def reset_world(self, timeout: float = 30.0) -> str:
@@ -305,11 +311,11 @@ class GscanCommander(Node):
         after it was sent that was typed as `command` (another client's command may be parsed
         in between), else the first valid one."""
         first = None
-        for t_ns, msg in self._graphs:
+        for t_ns, data in self._graphs:
             if t_ns < sent_ns:
                 continue
             try:
-                graph = msg_to_graph(msg)
+                graph = cdr_to_graph(data)
             except GscanError:
                 continue
             if (graph.typed or graph.command) == command:

@@ -8,6 +8,7 @@ them into rclpy QoSProfiles.
 from __future__ import annotations
 
 import functools
+import importlib
 import logging
 import sys
 import time
@@ -27,6 +28,7 @@ from std_msgs.msg import Header, String
 from gscan_ros import interface
 from gscan_ros.errors import GscanError
 from gscan_ros.interface import Endpoint, Qos, attention_topic, topic_token  # noqa: F401 - re-exported
+from msg_adapters import text_to_cdr
 
 COMMAND = interface.COMMAND.name
 COMMAND_GRAPH = interface.COMMAND_GRAPH.name
@@ -47,6 +49,12 @@ _DURABILITY = {
     interface.VOLATILE: DurabilityPolicy.VOLATILE,
     interface.TRANSIENT_LOCAL: DurabilityPolicy.TRANSIENT_LOCAL,
 }
+
+
+def msg_class(type_name: str) -> type:
+    """The generated rclpy message class of "pkg/msg/Type" (a publisher's or subscription's type support)."""
+    package, _, name = type_name.split("/")
+    return getattr(importlib.import_module(f"{package}.msg"), name)
 
 
 def qos_profile(spec: Endpoint | Qos, *, depth: int | None = None) -> QoSProfile:
@@ -179,7 +187,7 @@ class StatusReporter:
     def _publish(self, text: str, level: bytes) -> str:
         """Publish the line on `status` and take its level; returns the line."""
         line = self._line(text)
-        self._pub.publish(String(data=f"{self._node.get_name()}: {line}"))
+        self._pub.publish(text_to_cdr(f"{self._node.get_name()}: {line}"))
         changed = level != self._level
         self._level, self._message = level, line
         if changed:

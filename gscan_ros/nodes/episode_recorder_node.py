@@ -21,10 +21,10 @@ from gscan_ros import episode_status as es
 from gscan_ros import interface
 from gscan_ros.data.bag import LIVE_SPLIT, BagWriter
 from gscan_ros.data.bag_metadata import EPISODE_FORMAT_VERSION
-from gscan_ros.data.bag_schema import EPISODE, TOPICS, msg_class
+from gscan_ros.data.bag_schema import EPISODE, TOPICS
 from gscan_ros.errors import GscanError
-from gscan_ros.nodes.common import StatusReporter, describe, guarded, qos_profile, run, validated
-from msg_adapters import cdr_to_episode_status, text_to_msg
+from gscan_ros.nodes.common import StatusReporter, describe, guarded, msg_class, qos_profile, run, validated
+from msg_adapters import cdr_to_episode_status, text_to_cdr
 
 READY_LOG = "world state received: recording episodes"
 # The stack's topics the recorder takes (`episode` is its own to write).
@@ -138,7 +138,8 @@ class EpisodeRecorderNode(Node):
         if report.outcome == es.ACTIVE:
             record = {"version": EPISODE_FORMAT_VERSION, "id": report.episode_id, "split": LIVE_SPLIT,
                       "meta": {"recorded_by": self.get_fully_qualified_name()}}
-            self._writer.write_message(EPISODE.name, text_to_msg(json.dumps(record)), time.time_ns(), publish_ns)
+            self._writer.write_message(EPISODE.name, EPISODE.msg_type, text_to_cdr(json.dumps(record)), time.time_ns(),
+                                       publish_ns)
             return
         number = self._writer.episodes_written
         self._writer.count_episode(LIVE_SPLIT if report.outcome == es.COMPLETE else None)

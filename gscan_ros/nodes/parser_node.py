@@ -44,7 +44,7 @@ from gscan_ros.nodes.common import (
     run,
     validated,
 )
-from msg_adapters import cdr_to_string_bytes, episode_status_to_msg, graph_to_msg
+from msg_adapters import cdr_to_string_bytes, episode_status_to_cdr, graph_to_cdr
 
 
 class ParserNode(Node):
@@ -114,10 +114,10 @@ class ParserNode(Node):
             line = f"rejected command {quote(_shown(data))}: {exc}"
             self.status.reject(line)
             self._rejected += 1
-            self._episode_pub.publish(episode_status_to_msg(EpisodeStatus(
+            self._episode_pub.publish(episode_status_to_cdr(EpisodeStatus(
                 f"{self.get_fully_qualified_name()}/{self._rejected}", time.time_ns(), REJECTED, line)))
             return
-        self._graph_pub.publish(graph_to_msg(graph))
+        self._graph_pub.publish(graph_to_cdr(graph))
         if canonical.mappings:  # logged too
             self.status.info(f"{canonical.explain()} ({len(graph.nodes)} nodes)")
         else:

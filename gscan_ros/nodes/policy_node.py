@@ -32,10 +32,10 @@ from std_msgs.msg import Header, String
 
 from gscan_ros import episode_status as es
 from gscan_ros import interface
+from gscan_ros.analysis.explain import size_ordering
 from gscan_ros.errors import GscanError
 from gscan_ros.language.graph import CommandGraph
 from gscan_ros.model.policy import MAX_STEPS
-from gscan_ros.model.runtime import configure_torch
 from gscan_ros.nodes.common import (
     ACTION,
     COMMAND_GRAPH,
@@ -51,15 +51,16 @@ from gscan_ros.nodes.common import (
     run,
     validated,
 )
-from gscan_ros.training.explain import size_ordering
+from gscan_ros.runtime import configure_torch, resolve_device
 from gscan_ros.world.types import Action
 from msg_adapters import (
-    action_to_msg,
-    attention_to_msg,
-    episode_status_to_msg,
-    msg_to_graph,
-    msg_to_observation,
-    msg_to_reset,
+    action_to_cdr,
+    attention_to_cdr,
+    cdr_to_graph,
+    cdr_to_observation,
+    cdr_to_reset,
+    episode_status_to_cdr,
+    image_header,
 )
 
 MODEL_PARAMETERS = ("checkpoint", "device")
@@ -101,7 +102,7 @@ class PolicyNode(Node):
         self._size_ordering_pub = None
         self._observation: np.ndarray | None = None
         self._observation_ns = 0  # DDS source timestamp of the newest observation
-        self._observation_header = Header()  # its stamp and frame
+        self._observation_header = None  # its stamp and frame, once one came
         self._sent_ns = -1  # when the last action the world replies to (not <eos>) left this node (-1: never)
         self._graph: CommandGraph | None = None  # the running episode's graph, None when idle
         self._graph_ns = 0  # DDS source timestamp of the running episode's graph
@@ -114,9 +115,9 @@ class PolicyNode(Node):
         def newest(endpoint):
             return qos_profile(endpoint, depth=interface.LATEST_DEPTH)
 
-        self.create_subscription(Header, WORLD_RESET, self.on_world_reset, newest(interface.WORLD_RESET))
-        self.create_subscription(String, COMMAND_GRAPH, self.on_graph, newest(interface.COMMAND_GRAPH))
-        self.create_subscription(Image, OBSERVATION, self.on_observation, newest(interface.OBSERVATION))
+        self.create_subscription(Header, WORLD_RESET, self.on_world_reset, newest(interface.WORLD_RESET), raw=True)
+        self.create_subscription(String, COMMAND_GRAPH, self.on_graph, newest(interface.COMMAND_GRAPH), raw=True)
+        self.create_subscription(Image, OBSERVATION, self.on_observation, newest(interface.OBSERVATION), raw=True)
         self.add_on_set_parameters_callback(validated(self._check_parameters))
         self.add_post_set_parameters_callback(self._apply_parameters)
         self.get_logger().info(f"policy ready (parser {self._policy.parser_name})")
@@ -131,7 +132,7 @@ class PolicyNode(Node):
 
         checkpoint = changes.get("checkpoint", self.get_parameter("checkpoint").value)
         device = changes.get("device", self.get_parameter("device").value)
-        return Policy.from_checkpoint(checkpoint or None, device=device)
+        return Policy.from_checkpoint(checkpoint or None, device=resolve_device(device))
 
     def _check_parameters(self, changes: dict) -> None:
         """A new checkpoint or device is loaded here, so a bad one is refused with the reason."""
@@ -157,8 +158,8 @@ class PolicyNode(Node):
                              f"{self.get_parameter('device').value} (parser {self._policy.parser_name})")
 
     @guarded
-    def on_world_reset(self, msg: Header, info: dict) -> None:
-        reset_ns = msg_to_reset(msg)
+    def on_world_reset(self, data: bytes, info: dict) -> None:
+        reset_ns = cdr_to_reset(data)
         if reset_ns <= self._reset_ns:
             return
         self._reset_ns = reset_ns
@@ -168,7 +169,7 @@ class PolicyNode(Node):
             self._end(es.PREEMPTED, f"the world was reset after {self._steps} actions")
 
     @guarded
-    def on_graph(self, msg: String, info: dict) -> None:
+    def on_graph(self, data: bytes, info: dict) -> None:
         if info["source_timestamp"] < self._started_ns:
             self.get_logger().info("not following the latched command graph published before this node started")
             return
@@ -179,7 +180,7 @@ class PolicyNode(Node):
             self._end(es.PREEMPTED, f"a new command came after {self._steps} actions")
         self._take_next_policy()
         try:
-            graph = msg_to_graph(msg)
+            graph = cdr_to_graph(data)
             self._check_grid(self._observation)
             self._policy.reset(graph)
         except GscanError as exc:
@@ -193,13 +194,14 @@ class PolicyNode(Node):
             self._act()
 
     @guarded
-    def on_observation(self, msg: Image, info: dict) -> None:
+    def on_observation(self, data: bytes, info: dict) -> None:
         if info["source_timestamp"] < self._reset_ns:
             return  # a state of the world before the reset, delivered late
         # Kept even when it does not fit the checkpoint, so the next command is refused
         # with the reason instead of waiting for a state it can use.
-        self._observation, self._observation_ns = msg_to_observation(msg), info["source_timestamp"]
-        self._observation_header = msg.header  # the maps computed from it show its state
+        # A writable copy (the decoded view is read-only, which torch warns about).
+        self._observation, self._observation_ns = cdr_to_observation(data).copy(), info["source_timestamp"]
+        self._observation_header = image_header(data)  # the maps computed from it show its state
         try:
             self._check_grid(self._observation)
         except GscanError as exc:
@@ -222,7 +224,7 @@ class PolicyNode(Node):
 
     def _report(self, status: es.EpisodeStatus) -> None:
         """On `episode_status` for programs, on `status` for people."""
-        self._episode_pub.publish(episode_status_to_msg(status))
+        self._episode_pub.publish(episode_status_to_cdr(status))
         line = f"episode {status.episode_id} {status.outcome}: {status.text}"
         (self.status.reject if status.outcome == es.REJECTED else self.status.info)(line)
 
@@ -240,7 +242,7 @@ class PolicyNode(Node):
             action, attention, ordering = out.action, out.attention, size_ordering(out.attention, out.antonyms)
         if action is not Action.EOS:  # the world replies to it: act again only on a later state
             self._sent_ns = time.time_ns()
-        self._action_pub.publish(action_to_msg(action))
+        self._action_pub.publish(action_to_cdr(action))
         self._publish_attention(attention)
         if ordering is not None:
             self._publish_size_ordering(ordering)
@@ -259,14 +261,14 @@ class PolicyNode(Node):
             if pub is None:
                 pub = self._attention_pubs[word] = self.create_publisher(
                     Image, attention_topic(word), qos_profile(interface.ATTENTION))
-            pub.publish(attention_to_msg(weights, upsample=upsample, header=self._observation_header))
+            pub.publish(attention_to_cdr(weights, upsample=upsample, header=self._observation_header))
 
     def _publish_size_ordering(self, ordering: np.ndarray) -> None:
         """Shifted to start at 0, so the smallest object is darkest and the biggest lightest."""
         if self._size_ordering_pub is None:
             self._size_ordering_pub = self.create_publisher(Image, SIZE_ORDERING, qos_profile(interface.SIZE_ORDERING))
         upsample = self.get_parameter("attention_upsample").value
-        self._size_ordering_pub.publish(attention_to_msg(ordering - ordering.min(), upsample=upsample,
+        self._size_ordering_pub.publish(attention_to_cdr(ordering - ordering.min(), upsample=upsample,
                                                          header=self._observation_header))
 
 

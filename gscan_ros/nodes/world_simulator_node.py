@@ -41,15 +41,16 @@ from gscan_ros.nodes.common import (
     run,
     validated,
 )
+from gscan_ros.world.render import render
 from gscan_ros.world.types import GRID_SIZE, SUPPORTED_GRID_SIZES, Action
 from gscan_ros.world.world import World
 from msg_adapters import (
+    cdr_to_text,
     grid_header,
-    image_to_msg,
-    msg_to_action,
-    observation_to_msg,
-    reset_to_msg,
-    situation_to_msg,
+    image_to_cdr,
+    observation_to_cdr,
+    reset_to_cdr,
+    situation_to_cdr,
 )
 
 SOURCE_PARAMETERS = ("dataset", "split", "index", "seed", "grid_size")
@@ -89,7 +90,7 @@ class WorldSimulatorNode(Node):
         self._state_ns = 0  # when the world reached its current state: its observation's stamp
         self._actions = 0  # actions applied since the last reset or <eos>
         self.load(self._source.next())  # a bad dataset is a start-up error (run() reports it)
-        self.create_subscription(String, ACTION, self.on_action, qos_profile(interface.ACTION))
+        self.create_subscription(String, ACTION, self.on_action, qos_profile(interface.ACTION), raw=True)
         self.create_service(Trigger, RESET_WORLD, self.on_reset_world)
         self.add_on_set_parameters_callback(validated(self._check_parameters))
         self.add_post_set_parameters_callback(self._apply_parameters)
@@ -129,7 +130,7 @@ class WorldSimulatorNode(Node):
         self._world = World(episode.situation)
         self._reset_ns = time.time_ns()
         self._actions = 0
-        self._reset_pub.publish(reset_to_msg(self._reset_ns))
+        self._reset_pub.publish(reset_to_cdr(self._reset_ns))
         self.publish_state(self._reset_ns)
         text = f"loaded {self._source.describe(episode)}; its command: {episode.command!r}"
         self.status.info(text)
@@ -145,18 +146,20 @@ class WorldSimulatorNode(Node):
         """
         self._state_ns = time.time_ns() if state_ns is None else state_ns
         header = grid_header(self._state_ns)
-        self._situation_pub.publish(situation_to_msg(self._world.snapshot()))
-        self._observation_pub.publish(observation_to_msg(self._world.encode(), header=header))
+        self._situation_pub.publish(situation_to_cdr(self._world.snapshot()))
+        self._observation_pub.publish(observation_to_cdr(self._world.encode(), header=header))
         if self.get_parameter("publish_images").value:
-            self._image_pub.publish(image_to_msg(self._world.render(), header=header))
+            self._image_pub.publish(image_to_cdr(render(self._world), header=header))
 
     @guarded
-    def on_action(self, msg: String, info: dict) -> None:
+    def on_action(self, data: bytes, info: dict) -> None:
+        """`data`: the serialized std_msgs/String (malformed bytes are rejected by `guarded`)."""
+        token = cdr_to_text(data)
         if info["source_timestamp"] < self._reset_ns:
-            self.status.reject(f"ignored action {quote(msg.data)}: it was sent before the world was reset")
+            self.status.reject(f"ignored action {quote(token)}: it was sent before the world was reset")
             return
         try:
-            action = msg_to_action(msg)
+            action = Action.from_token(token)
             if action is Action.EOS:
                 self.status.info(f"episode ended after {self._actions} actions")
                 self._actions = 0
@@ -164,7 +167,7 @@ class WorldSimulatorNode(Node):
             self._world.step(action)
             self._actions += 1
         except GscanError as exc:
-            self.status.reject(f"rejected action {quote(msg.data)}: {exc}")
+            self.status.reject(f"rejected action {quote(token)}: {exc}")
         self.publish_state()
 
     @guarded_trigger("reset failed, world unchanged")

@@ -92,6 +92,9 @@ class TrainConfig:
     max_train_target_length: int = 0
     """Train only on episodes of at most this many actions (the original's `max_seq_length`;
     the paper's Table 2 trains split I at 15, 14 and 13); 0 = all."""
+    max_dev_target_length: int = 0
+    """Validate only on dev episodes of at most this many actions, so that model selection
+    sees the distribution trained on (Table 2's 14 and 13 set it to their train cut); 0 = all."""
     include_incomplete: bool = False
     """Also train on recorded episodes that did not end complete (cut at max_steps, preempted,
     rejected): off, since they are no demonstrations (docs/bags.md "Outcomes")."""
@@ -126,7 +129,7 @@ class TrainConfig:
             if int(getattr(self, key)) <= 0:
                 raise ConfigError(f"{key} must be positive, got {quoted(getattr(self, key))}")
         for key in ("screen_seeds", "screen_updates", "warmup_updates", "decay_updates", "max_train_examples",
-                    "max_train_target_length", "max_dev_examples", "threads"):
+                    "max_train_target_length", "max_dev_target_length", "max_dev_examples", "threads"):
             if int(getattr(self, key)) < 0:
                 raise ConfigError(f"{key} must be >= 0, got {quoted(getattr(self, key))}")
         for key in ("lr", "min_lr_ratio", "grad_clip", "target_dev_exact_match", "max_minutes"):

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
-from gscan_ros.model.runtime import resolve_device
+from gscan_ros.runtime import resolve_device
 
 T = TypeVar("T")
 

@@ -9,7 +9,6 @@ import numpy as np
 import torch
 
 from gscan_ros.errors import GscanError
-from gscan_ros.model.checkpoint import model_kind
 from gscan_ros.training import distributed
 from gscan_ros.training.batches import EpisodeStore
 
@@ -20,7 +19,7 @@ class TrainingDiverged(GscanError):
 
 def teacher_batch(model: torch.nn.Module, store: EpisodeStore, ids: Sequence[int]):
     """The teacher-forcing input of episodes `ids` in the form `model` takes."""
-    if model_kind(model) == "compositional":
+    if model.kind == "compositional":
         return store.batch(ids, model.table, model.active_rows_multiple)
     return model.make_batch(store, ids)
 

@@ -22,18 +22,18 @@ import torch
 import yaml
 from tqdm import tqdm
 
+from gscan_ros.analysis.explain import step0_readings, summarize
 from gscan_ros.errors import CheckpointError, DatasetFormatError, GscanError
 from gscan_ros.language.lexicon import Lexicon
 from gscan_ros.model.checkpoint import build_model, checkpoint_dict, read_checkpoint, restore_model, save_checkpoint
 from gscan_ros.model.modules import ModuleTable
 from gscan_ros.model.policy import Policy
-from gscan_ros.model.runtime import configure_torch, mkl_shim_loaded
 from gscan_ros.outputs import claimed, refuse_links, replacing, write_text
+from gscan_ros.runtime import configure_torch, mkl_shim_loaded
 from gscan_ros.training import distributed
 from gscan_ros.training.batches import EpisodeStore, EpochCursor, iterate_batches, word_repeats
 from gscan_ros.training.config import ConfigError, TrainConfig
 from gscan_ros.training.evaluate import evaluate_episodes, exact_match_by_group
-from gscan_ros.training.explain import step0_readings, summarize
 from gscan_ros.training.metrics_log import append_event, read_events, rewind
 from gscan_ros.training.step import TrainingDiverged, TrainStep
 
@@ -135,7 +135,7 @@ def new_model(cfg: TrainConfig, parser, lexicon: Lexicon, store: EpisodeStore):
     if cfg.model_kind == "compositional":
         table = module_table(parser, lexicon, store.graphs)
         return build_model("compositional", model_settings(cfg, store), {"modules": table.to_list()})
-    from gscan_ros.model.seq2seq import command_vocabulary
+    from gscan_ros.model.decoder import command_vocabulary
 
     return build_model(cfg.model_kind, model_settings(cfg, store), {"tokens": command_vocabulary()})
 
@@ -190,12 +190,16 @@ def load_train_store(data: str, cfg: TrainConfig, parser, progress: bool = False
 
 def load_dev(data: str, cfg: TrainConfig) -> list:
     """Validation episodes: a fixed, seeded subset of `max_dev_examples` (0 = all) of the
-    dev split. From a bag, only the chosen episodes' situations are parsed."""
+    dev split's episodes of at most `max_dev_target_length` actions. From a bag, only the
+    chosen episodes' situations are parsed."""
     cache = split_cache(data, cfg.dev_split)
     source = cache if cache is not None else load_split(data, cfg.dev_split)
-    pick = range(len(source))
-    if cfg.max_dev_examples and len(source) > cfg.max_dev_examples:
-        pick = sorted(np.random.default_rng(cfg.seed).choice(len(source), cfg.max_dev_examples, replace=False))
+    cap = cfg.max_dev_target_length
+    pick = [i for i in range(len(source))
+            if not cap or len(cache.actions(i) if cache is not None else source[i].actions) <= cap]
+    if cfg.max_dev_examples and len(pick) > cfg.max_dev_examples:
+        chosen = np.random.default_rng(cfg.seed).choice(len(pick), cfg.max_dev_examples, replace=False)
+        pick = [pick[i] for i in sorted(chosen)]
     if cache is not None:
         return cache.subset(pick).episodes
     return [source[i] for i in pick]

@@ -204,12 +204,6 @@ class World:
             grid_size=self.grid_size,
         )
 
-    def render(self, cell_px: int = 40) -> np.ndarray:
-        """RGB uint8[H, W, 3] picture of the current state (see `world.render`)."""
-        from gscan_ros.world.render import render
-
-        return render(self, cell_px=cell_px)
-
     def copy(self) -> "World":
         """An independent copy (lists and the cached encoding are duplicated)."""
         new = World.__new__(World)

@@ -1,4 +1,4 @@
-"""The paper's Fig. 3 and Fig. 4 drawn with matplotlib (Agg), from `training.explain` traces.
+"""The paper's Fig. 3 and Fig. 4 drawn with matplotlib (Agg), from `analysis.explain` traces.
 
 Fig. 3 (`step_figure`): the world (`world.render`), then each word module's map from
 leaves to root with the parse tree drawn above them, then the size-ordering map when
@@ -24,8 +24,8 @@ from matplotlib.figure import Figure  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.patches import Circle, FancyBboxPatch, Polygon, Rectangle  # noqa: E402
 
+from gscan_ros.analysis.explain import Trace, TraceStep  # noqa: E402
 from gscan_ros.language.graph import CommandGraph  # noqa: E402
-from gscan_ros.training.explain import Trace, TraceStep  # noqa: E402
 from gscan_ros.world.render import COLOR_RGB, render  # noqa: E402
 from gscan_ros.world.types import Situation  # noqa: E402
 

@@ -410,7 +410,7 @@ def evenly(items: Sequence, most: int) -> list:
 
 
 def progression_metrics(paths: Sequence[tuple[int, Path]], episodes: Sequence[Episode],
-                        batch_size: int = 512, device: str = "cpu") -> list[dict]:
+                        batch_size: int = 512, device: str | torch.device = "cpu") -> list[dict]:
     """For each snapshot: its update, the dev exact match of its last validation (and that
     validation's update), and `summarize`'s "all" row over `episodes` (decoded on `device`)."""
     rows = []

@@ -22,10 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from gscan_ros.errors import GscanError
-from gscan_ros.outputs import replacing, write_text
-from gscan_ros.training.failures import FAILURE_KINDS, failure_label
-from gscan_ros.training.metrics_log import read_events
-from gscan_ros.training.paper_figures import (
+from gscan_ros.experiments.paper_figures import (
     COLUMN_TITLES,
     K_SHOT_LABELS,
     PAPER_EXAMPLES,
@@ -37,6 +34,9 @@ from gscan_ros.training.paper_figures import (
     TABLE2_ROWS,
     TABLE2_SOURCE,
 )
+from gscan_ros.outputs import replacing, write_text
+from gscan_ros.training.failures import FAILURE_KINDS, failure_label
+from gscan_ros.training.metrics_log import read_events
 from gscan_ros.user_files import read_json, read_yaml
 
 RISING_POINTS = 1.0  # dev exact match gained over the last 20 % of updates that counts as "still rising"

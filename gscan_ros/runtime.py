@@ -1,4 +1,7 @@
-"""Process-wide torch settings, and which device the network runs on.
+"""Process-wide torch settings, and which device the network runs on: what whoever starts
+a process that runs a model (the CLI, the trainer, torchrun ranks, the policy node, the
+benchmarks) sets up first. The model package never configures the machine; it runs
+where it is put.
 
 torch is imported inside the functions, so the CLI can offer `DEVICES` without loading it.
 """
@@ -79,8 +82,8 @@ def mkl_shim_env(env: Mapping[str, str] | None = None, *, vendor: str | None = N
     LD_PRELOAD, for subprocesses that train or evaluate.
 
     torch's x86 CPU wheels do their float matmuls with MKL, and MKL runs a generic, slower
-    code path on CPUs that are not Intel's. The shim (`mkl_intel_cpu.c`) makes MKL treat
-    the CPU as Intel's and pick its kernels by the CPU's features. On an AMD EPYC (AVX2)
+    code path on CPUs that are not Intel's. The shim (`mkl_intel_cpu.c`, beside this file)
+    makes MKL treat the CPU as Intel's and pick its kernels by the CPU's features. On an AMD EPYC (AVX2)
     VM, float32 products of [3,000 x 150] by [150 x 150] or [150 x 450] ran 1.8-2.1x
     faster at 1 thread (bench/matmul.py), and training updates 8-10 % faster
     (docs/results.md, "Engine settings"). A library has to be preloaded when a process

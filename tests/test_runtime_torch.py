@@ -1,8 +1,8 @@
 """Process-wide torch settings."""
 import torch
 
-from gscan_ros.model import runtime
-from gscan_ros.model.runtime import configure_torch
+from gscan_ros import runtime
+from gscan_ros.runtime import configure_torch
 
 
 def test_configure_torch_flushes_denormals_and_sets_threads():

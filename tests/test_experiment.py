@@ -569,3 +569,21 @@ def test_a_field_added_since_a_run_started_counts_as_its_default(tmp_path, plan_
     (tmp_path / "config.yaml").write_text(yaml.safe_dump(saved))
     plan = TrainConfig(max_train_target_length=14, max_dev_target_length=plan_value)
     assert config_changes(tmp_path, plan) == changed
+
+
+def test_committed_weights_are_weights_only_and_belong_to_their_run():
+    """A finished run's model.pt re-checks its numbers: the run's model kind, the update its
+    training picked, and no optimizer state (git is no place for Adam's moments)."""
+    from gscan_ros.model.checkpoint import read_checkpoint
+
+    weights = sorted(REPO.glob("results/*/*/model.pt"))
+    finished = [path for path in weights if (path.parent / "results.json").is_file()]
+    if not finished:
+        pytest.skip("no finished run with weights in results/")
+    for path in finished:
+        checkpoint = read_checkpoint(path)
+        config = yaml.safe_load((path.parent / "config.yaml").read_text())
+        results = json.loads((path.parent / "results.json").read_text())
+        assert {"optimizer", "rng", "cursor"}.isdisjoint(checkpoint), path
+        assert checkpoint["kind"] == config["model_kind"] == results["model_kind"], path
+        assert 0 < checkpoint["step"] <= results["updates"], path

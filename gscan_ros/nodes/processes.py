@@ -48,7 +48,7 @@ def join_local_graph() -> None:
 
 def fresh_domain_id() -> int:
     """The ROS domain for one run: ROS_DOMAIN_ID when the environment sets it (a machine
-    that assigns each session its domain: the runs then take turns in it), else one within
+    or CI job that assigns each user a domain: the runs then take turns in it), else one within
     1..100 (valid Fast DDS ports), varied by pid."""
     assigned = os.environ.get("ROS_DOMAIN_ID", "")
     if assigned.isdigit():

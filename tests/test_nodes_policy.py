@@ -4,12 +4,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 import yaml
 from rclpy.qos import ReliabilityPolicy
 from sensor_msgs.msg import Image
 from std_msgs.msg import String
 
 from gscan_ros.language import get_parser
+from gscan_ros.language.lexicon import Lexicon
+from gscan_ros.model.checkpoint import build_model, checkpoint_dict, save_checkpoint
+from gscan_ros.model.decoder import command_vocabulary
 from gscan_ros.model.policy import MAX_STEPS, StepOutput
 from gscan_ros.nodes.common import EVENT_QOS, VIEWER_LOG_QOS
 from gscan_ros.nodes.policy_node import PolicyNode
@@ -91,6 +95,24 @@ def test_max_steps_forces_eos(probe):
     probe.spin_until(lambda: any("stopped at max_steps=3" in s.data for s in status), what="the cap notice")
 
 
+@pytest.mark.parametrize("kind", ["seq2seq", "auxloss", "lcgn"])
+def test_the_comparison_systems_drive_the_node_from_their_checkpoint(probe, tmp_path, kind):
+    """The baselines need only what the node has, the command and the observation: a
+    checkpoint of each kind, named by the `checkpoint` parameter, follows a command."""
+    torch.manual_seed(0)
+    model = build_model(kind, {}, {"tokens": command_vocabulary()})
+    path = tmp_path / f"{kind}.pt"
+    save_checkpoint(path, checkpoint_dict(model, parser="semantic", lexicon=Lexicon.none(), step=1, metrics={}))
+    actions = probe.record("action", String, EVENT_QOS)
+    node = PolicyNode(context=probe.context, parameter_overrides=parameters(checkpoint=str(path), max_steps=3))
+    probe.executor.add_node(node)
+    node.on_graph(graph(), source_info())
+    for value in range(4):
+        node.on_observation(observation(value), source_info())
+    probe.spin_until(lambda: actions and actions[-1].data == "<eos>", what="the episode's end")
+    assert 1 <= len(actions) <= 4
+    assert all(Action.from_token(a.data) in Action for a in actions)
+
 
 def test_the_default_cap_is_the_policys_max_steps_in_the_node_and_in_params_yaml(probe):
     """config/params.yaml cannot import MAX_STEPS, so it repeats the value; this keeps the two equal."""
@@ -98,6 +120,7 @@ def test_the_default_cap_is_the_policys_max_steps_in_the_node_and_in_params_yaml
     assert params["/**/policy_node"]["ros__parameters"]["max_steps"] == MAX_STEPS
     node, _ = start(probe, [Action.EOS])
     assert node.get_parameter("max_steps").value == MAX_STEPS
+
 
 def test_model_eos_ends_the_episode(probe):
     actions = probe.record("action", String, EVENT_QOS)

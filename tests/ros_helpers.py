@@ -38,10 +38,11 @@ join_local_graph()
 class Probe:
     """A node in the test process: records topics, publishes, and waits on graph state."""
 
-    def __init__(self, domain_id: int, name: str = "test_probe"):
+    def __init__(self, domain_id: int, name: str = "test_probe", namespace: str = ""):
         self.context = rclpy.Context()
         rclpy.init(context=self.context, domain_id=domain_id)
-        self.node = Node(name, context=self.context)
+        self.node = Node(name, namespace=namespace, context=self.context)
+        self.namespace = self.node.get_namespace()  # relative topic names resolve in it
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self.received: dict[str, list] = defaultdict(list)

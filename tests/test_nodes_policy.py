@@ -1,4 +1,6 @@
 """policy_node in-process with a scripted policy: lock-step timing, max_steps, preemption, bad graphs."""
+import itertools
+import os
 import time
 from pathlib import Path
 
@@ -30,14 +32,26 @@ from msg_adapters import (
     time_ns,
 )
 
-from ros_helpers import ScriptedPolicy, parameters, source_info
+from ros_helpers import Probe, ScriptedPolicy, fresh_domain_id, parameters, source_info
 
 PARSER = get_parser("semantic")
+_TESTS = itertools.count()
+
+
+@pytest.fixture
+def probe():
+    """The probe in a namespace of this test's own, where the node under test is created too: a
+    world simulator of an earlier test still leaving the shared domain cannot serve it a
+    latched observation of its own."""
+    p = Probe(fresh_domain_id(), namespace=f"/policy_test_{os.getpid()}_{next(_TESTS)}")
+    yield p
+    p.close()
 
 
 def start(probe, script, **params):
     policy = ScriptedPolicy(script)
-    node = PolicyNode(policy, context=probe.context, parameter_overrides=parameters(**params))
+    node = PolicyNode(policy, context=probe.context, namespace=probe.namespace,
+                      parameter_overrides=parameters(**params))
     probe.executor.add_node(node)
     return node, policy
 
@@ -104,7 +118,8 @@ def test_the_comparison_systems_drive_the_node_from_their_checkpoint(probe, tmp_
     path = tmp_path / f"{kind}.pt"
     save_checkpoint(path, checkpoint_dict(model, parser="semantic", lexicon=Lexicon.none(), step=1, metrics={}))
     actions = probe.record("action", String, EVENT_QOS)
-    node = PolicyNode(context=probe.context, parameter_overrides=parameters(checkpoint=str(path), max_steps=3))
+    node = PolicyNode(context=probe.context, namespace=probe.namespace,
+                      parameter_overrides=parameters(checkpoint=str(path), max_steps=3))
     probe.executor.add_node(node)
     node.on_graph(graph(), source_info())
     for value in range(4):
@@ -228,7 +243,7 @@ def test_attention_maps_are_published_per_word(probe):
     assert (time_ns(msg.header.stamp), msg.header.frame_id) == (state_ns, "gscan_grid")
     np.testing.assert_allclose(cdr_to_attention(red[0]), np.eye(6))
     np.testing.assert_allclose(cdr_to_attention(spinning[0]), np.eye(6)[::-1])
-    viewers = [pub for pub in node.publishers if pub.topic_name.startswith("/attention/")]
+    viewers = [pub for pub in node.publishers if pub.topic_name.startswith(f"{probe.namespace}/attention/")]
     assert viewers and all(pub.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT for pub in viewers)
 
 
@@ -292,7 +307,8 @@ def test_size_ordering_is_published_for_a_size_word(probe):
             return StepOutput(super().step(observation).action, {"small": small}, {"small": big})
 
     ordering = probe.record("attention/size_ordering", Image, VIEWER_LOG_QOS, raw=True)
-    node = PolicyNode(SizePolicy([Action.WALK]), context=probe.context, parameter_overrides=parameters())
+    node = PolicyNode(SizePolicy([Action.WALK]), context=probe.context, namespace=probe.namespace,
+                      parameter_overrides=parameters())
     probe.executor.add_node(node)
     node.on_graph(graph("walk to a small circle"), source_info())
     deadline = time.monotonic() + 30

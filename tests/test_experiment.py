@@ -320,12 +320,12 @@ def test_paper_plan_covers_every_column_with_one_recipe():
     for run in plan.runs:
         seeds.setdefault((run.column, run.entry), set()).add(run.seed)
     budgets = {run.column: resolve_config(plan, run).max_updates for run in plan.runs}
-    longer = {budgets.pop("seq2seq_160k"), budgets.pop("semantic_k10_160k")}
+    longer = {budgets.pop(column) for column in ("seq2seq_160k", "auxloss_160k", "semantic_k10_160k")}
     assert len(set(budgets.values()) - longer) == 1  # one budget, and its named variants
     columns = {column for column, _ in seeds}
     main = {"seq2seq", "geca", "auxloss", "lcgn", "state", "attention+state", "constituency", "dependency",
             "semantic"}
-    assert columns == main | {"seq2seq_160k", "semantic_minmax", "semantic_add", "dependency_cosine",
+    assert columns == main | {"seq2seq_160k", "auxloss_160k", "semantic_minmax", "semantic_add", "dependency_cosine",
                               "semantic_faithful", "semantic_percommand", "semantic_percommand_screened",
                               "semantic_oversample", "semantic_screened", "attention+state_screened",
                               "semantic_len15_percommand", "semantic_len15_minmax", "semantic_len15_faithful",

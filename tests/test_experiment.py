@@ -19,7 +19,7 @@ from gscan_ros.data.io import DATASET_MANIFEST
 from gscan_ros.experiments.paper_figures import TABLE1, TABLE2
 from gscan_ros.experiments.plan import DataRecipe, PlanError, load_plan, resolve_config
 from gscan_ros.experiments.runner import Runner, augment_base
-from gscan_ros.experiments.state import RunState, config_changes, work_order
+from gscan_ros.experiments.state import RunState, config_changes, seconds_per_update, training_left, work_order
 from gscan_ros.outputs import PARTIAL
 from gscan_ros.runtime import MKL_SHIM, mkl_shim_env
 from gscan_ros.training.failures import FAILURE_KINDS
@@ -286,6 +286,27 @@ def test_work_order_finishes_trained_runs_before_training_others(tmp_path):
     order = work_order([RunState(spec, status, 0, 2) for spec, status in zip(specs, statuses)])
     assert [(st.spec.name, st.status) for st in order] == [
         ("r2_s0", "done"), ("r3_s0", "evaluate"), ("r1_s0", "resume"), ("r4_s0", "resume"), ("r0_s0", "new")]
+
+
+def test_training_left_uses_each_runs_rate_then_its_entrys_then_its_recipes(tmp_path):
+    semantic, seq2seq = str(REPO / "configs/semantic.yaml"), str(REPO / "configs/seq2seq.yaml")
+    specs = load_plan(write_plan(tmp_path / "plan.yaml", tmp_path, runs=[
+        {"name": "a", "config": semantic, "data": "tiny", "seeds": [0, 1], "splits": SPLITS},
+        {"name": "b", "config": semantic, "data": "tiny", "seeds": [0], "splits": SPLITS},
+        {"name": "c", "config": seq2seq, "data": "tiny", "seeds": [0], "splits": SPLITS}])).runs
+    by_name = {spec.name: spec for spec in specs}
+    states = [RunState(by_name["a_s0"], "done", 100, 100, seconds_per_update=2.0),
+              RunState(by_name["a_s1"], "resume", 40, 100, seconds_per_update=3.0),  # its own rate
+              RunState(by_name["b_s0"], "new", 0, 100),  # no entry rate: a's, on the same recipe
+              RunState(by_name["c_s0"], "new", 0, 100)]  # another config: nothing to go by
+    seconds, unknown = training_left(states)
+    assert seconds == 60 * 3.0 + 100 * 2.5 and unknown == ["c_s0"]
+    states[1] = RunState(by_name["a_s1"], "stale", 100, 100, seconds_per_update=3.0)  # retrained from 0
+    assert training_left(states)[0] == 100 * 3.0 + 100 * 2.5
+    events = [{"event": "train", "examples_per_s": 100.0, "mean_batch": 50},
+              {"event": "train", "examples_per_s": 50.0}, {"event": "validation"}]
+    assert seconds_per_update(events, batch_size=200) == (0.5 + 4.0) / 2  # old logs: the config's batch
+    assert seconds_per_update([{"event": "start"}], 50) is None
 
 
 def test_only_selects_entries_or_runs_and_names_unknown_ones():

@@ -43,6 +43,7 @@ from gscan_ros.experiments.state import (
     finished_end,
     run_state,
     trained_updates,
+    training_left,
     work_order,
 )
 from gscan_ros.runtime import mkl_shim_env
@@ -104,6 +105,11 @@ class Runner:
         left = len(states) - counts["done"] - counts["running"]
         lines = [f"{len(states)} runs: {counts['done']} done, {counts['running']} running, {left} left "
                  f"({', '.join(f'{counts[s]} {s}' for s in ('evaluate', 'resume', 'new', 'stale') if counts[s])})"]
+        seconds, unknown = training_left(states)
+        if seconds or unknown:
+            no_rate = f"; no rate yet for {len(unknown)}: {' '.join(unknown)}" if unknown else ""
+            lines.append(f"  training left: ~{seconds / 3600:.0f} core-hours at the rates these runs logged, "
+                         f"one thread each{no_rate}")
         recipes = {s.data.name: s.data for s in self.share}
         names = max(map(len, recipes), default=0)
         for name, recipe in recipes.items():

@@ -6,6 +6,7 @@ machine (`UNTRACKED_KEYS`) may change without that.
 """
 from __future__ import annotations
 
+import statistics
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -53,6 +54,42 @@ class RunState:
     updates: int  # latest logged update
     max_updates: int
     detail: str = ""
+    seconds_per_update: float | None = None  # median of the run's logged training windows
+
+
+def seconds_per_update(events: list[dict], batch_size: int) -> float | None:
+    """A run's training time per update: the median over its logged windows of batch size
+    / examples per second (validation, checkpoints and evaluation not counted); None
+    before its first window. Older logs lack `mean_batch`: the config's batch then."""
+    times = [e.get("mean_batch", batch_size) / e["examples_per_s"] for e in events
+             if e.get("event") == "train" and e.get("examples_per_s")]
+    return statistics.median(times) if times else None
+
+
+def training_left(states: list[RunState]) -> tuple[float, list[str]]:
+    """Seconds of training the unfinished runs still need, one thread each, and the names of
+    those with no rate to go by. A run's rate is its own logged one, else the median of its
+    entry's runs, else of the runs with its config file on its kind of data (a 12x12
+    length split trains slower than 6x6). Rates depend on the machine and its load: an
+    estimate, not a promise. A stale run counts from zero, as `--restart-stale` retrains it."""
+    by_entry: dict[str, list[float]] = {}
+    by_recipe: dict[tuple, list[float]] = {}
+    for st in states:
+        if st.seconds_per_update is not None:
+            by_entry.setdefault(st.spec.entry, []).append(st.seconds_per_update)
+            by_recipe.setdefault((st.spec.config, st.spec.data.split_kind), []).append(st.seconds_per_update)
+    seconds, unknown = 0.0, []
+    for st in states:
+        if st.status in ("done", "evaluate"):
+            continue
+        rates = ([st.seconds_per_update] if st.seconds_per_update is not None
+                 else by_entry.get(st.spec.entry) or by_recipe.get((st.spec.config, st.spec.data.split_kind)))
+        if not rates:
+            unknown.append(st.spec.name)
+            continue
+        updates = st.max_updates - (0 if st.status == "stale" else min(st.updates, st.max_updates))
+        seconds += updates * statistics.median(rates)
+    return seconds, unknown
 
 
 def config_changes(run_dir: Path, cfg, events: list[dict] | None = None) -> list[str]:
@@ -100,7 +137,8 @@ def _model_settings(config: dict) -> dict | None:
 def run_state(run_dir: Path, spec: RunSpec, cfg, ignore_lock: bool = False) -> RunState:
     """Where a run stands, from its files alone."""
     events = read_events(run_dir / "metrics.jsonl")
-    state = RunState(spec, "new", trained_updates(events), cfg.max_updates)
+    state = RunState(spec, "new", trained_updates(events), cfg.max_updates,
+                     seconds_per_update=seconds_per_update(events, cfg.batch_size))
     holder = None if ignore_lock else FileLock(run_dir / LOCK).holder()
     if holder is not None:
         state.status, state.detail = "running", _holder_text(holder, run_dir / LOCK)

@@ -157,3 +157,38 @@ def test_kshot_exposures_counts_passes_with_the_runs_own_batching(tmp_path, tiny
     mixed.write_text(json.dumps(curve))
     bad = subprocess.run(cmd[:3], capture_output=True, text=True)
     assert bad.returncode != 0 and "--train-containing cautiously" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_think_accuracy_bench_scores_the_auxloss_classifiers_guess(tmp_path, tiny_dataset):
+    """With its scoring vector zeroed, the classifier's logits tie and its guess is cell 0
+    in every episode: the bench's figures then follow from the situations alone."""
+    from gscan_ros.language.lexicon import Lexicon
+    from gscan_ros.model.checkpoint import build_model, checkpoint_dict, save_checkpoint
+
+    torch.manual_seed(0)
+    model = build_model("auxloss", {}, {"tokens": command_vocabulary()})
+    with torch.no_grad():
+        model.think_world.v.weight.zero_()
+    ckpt = tmp_path / "auxloss.pt"
+    save_checkpoint(ckpt, checkpoint_dict(model, parser="semantic", lexicon=Lexicon.none(), step=0, metrics={}))
+    out = tmp_path / "think.json"
+    cmd = [sys.executable, str(REPO / "bench/research/think_accuracy.py"), "--checkpoint", str(ckpt), "--data",
+           str(tiny_dataset), "--splits", "test", "visual", "--max-examples", "40", "--json", str(out)]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    rows = {r["split"]: r for r in json.loads(out.read_text())["rows"]}
+    episodes = select_test_episodes(tiny_dataset, ["test", "visual"], max_examples=40, seed=0)
+    for split in ("test", "visual"):
+        eps = [ep for ep in episodes if ep.split == split]
+        at_origin = [next((o for o in ep.situation.placed_objects if o.position == (0, 0)), None) for ep in eps]
+        target_there = [o == ep.situation.target_object for o, ep in zip(at_origin, eps)]
+        row = rows[split]
+        assert row["episodes"] == len(eps) and row["think"] == pytest.approx(100 * np.mean(target_there), abs=0.01)
+        wrong = [o for o, hit in zip(at_origin, target_there) if not hit]
+        assert row["wrong_guesses"]["empty"] == sum(o is None for o in wrong)
+        assert sum(row["wrong_guesses"].values()) == len(wrong) > 0
+    bad = subprocess.run(cmd[:3] + [str(REPO / "gscan_ros/assets/default_model.pt")] + cmd[4:-2],
+                         capture_output=True, text=True, timeout=300)
+    assert bad.returncode != 0 and "not auxloss" in bad.stderr and "Traceback" not in bad.stderr
+    again = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert again.returncode != 0 and "exists" in again.stderr and "Traceback" not in again.stderr

@@ -199,12 +199,26 @@ def test_augment_keys_give_the_dataset_a_folder_of_its_own():
     folders = {name: recipe.directory(Path("d")).name
                for name, recipe in load_plan(REPO / "configs/experiments/paper.yaml").datasets.items()}
     # the folders the plan's datasets had before there was `augment`: not regenerated
-    assert {name: folder for name, folder in folders.items() if name != "compositional_geca"} == {
+    assert {name: folder for name, folder in folders.items() if not name.startswith("compositional_geca")} == {
         "compositional": "compositional-cd3ca4a4", "kshot5": "kshot5-ab3d43cd", "kshot10": "kshot10-585800e1",
         "kshot50": "kshot50-1b0ba1e4", "length": "length-c3a26e31"}
+    assert folders["compositional_geca"] == "compositional_geca-a793018d"  # as before `keep_held_out`
     plain, geca = DataRecipe("x", seed=3), DataRecipe("x", seed=3, augment="geca")
     assert geca.augment_seed == 3 and geca.directory(Path("d")) == replace(geca, augment_seed=3).directory(Path("d"))
-    assert len({r.directory(Path("d")) for r in (plain, geca, replace(geca, augment_seed=4))}) == 3
+    kept = replace(geca, keep_held_out=True)
+    assert kept.augment_flags() == ["--method", "geca", "--seed", "3", "--keep-held-out"]
+    assert "--keep-held-out" not in geca.augment_flags()
+    assert len({r.directory(Path("d")) for r in (plain, geca, replace(geca, augment_seed=4), kept)}) == 4
+
+
+@pytest.mark.parametrize(("dataset", "message"), [
+    ({"keep_held_out": True}, "keep_held_out needs datasets.tiny.augment"),
+    ({"augment": "geca", "keep_held_out": "yes"}, "keep_held_out has the wrong type"),
+    ({"augment": "geca", "seed": True}, "seed has the wrong type")])
+def test_bad_augment_keys_are_refused_by_name(tmp_path, dataset, message):
+    path = write_plan(tmp_path / "plan.yaml", tmp_path, data={**TINY_DATA, **dataset})
+    with pytest.raises(PlanError, match=message):
+        load_plan(path)
 
 
 def test_a_live_lock_means_running_and_a_dead_one_is_stale(tmp_path, capsys):
@@ -346,7 +360,7 @@ def test_paper_plan_covers_every_column_with_one_recipe():
     columns = {column for column, _ in seeds}
     main = {"seq2seq", "geca", "auxloss", "lcgn", "state", "attention+state", "constituency", "dependency",
             "semantic"}
-    assert columns == main | {"seq2seq_160k", "auxloss_160k", "semantic_minmax", "semantic_add", "dependency_cosine",
+    assert columns == main | {"seq2seq_160k", "auxloss_160k", "geca_keep_held_out", "semantic_minmax", "semantic_add", "dependency_cosine",
                               "semantic_faithful", "semantic_percommand", "semantic_percommand_screened",
                               "semantic_oversample", "semantic_screened", "attention+state_screened",
                               "semantic_len15_percommand", "semantic_len15_minmax", "semantic_len15_faithful",

@@ -44,6 +44,7 @@ class DataRecipe:
     path: str | None = None
     augment: str | None = None  # a `gscan-ros augment --method`
     augment_seed: int | None = None  # its --seed; None: `seed`
+    keep_held_out: bool = False  # its --keep-held-out: additions of a held-out split's kind stay
 
     def __post_init__(self):
         if self.augment is not None and self.augment_seed is None:
@@ -63,7 +64,9 @@ class DataRecipe:
 
     def augment_flags(self) -> list[str]:
         """`gscan-ros augment` arguments (besides --data, --out, --quiet); none without `augment`."""
-        return [] if self.augment is None else ["--method", self.augment, "--seed", str(self.augment_seed)]
+        if self.augment is None:
+            return []
+        return ["--method", self.augment, "--seed", str(self.augment_seed)] + ["--keep-held-out"] * self.keep_held_out
 
     def directory(self, data_root: Path) -> Path:
         """`path`, or `<data_root>/<name>-<hash of the flags>` (new flags, new folder; a
@@ -76,7 +79,7 @@ class DataRecipe:
     def record(self) -> dict:
         """What results.json says about the data."""
         keys = ("name", "split_kind", "examples", "k_shot", "seed", "cut_off_target_length", "path", "augment",
-                "augment_seed")
+                "augment_seed", "keep_held_out")
         return {k: getattr(self, k) for k in keys}
 
 
@@ -126,7 +129,8 @@ class Plan:
 _TOP_KEYS = ("results", "data_root", "defaults", "evaluation", "datasets", "runs", "first")
 _DATASET_KEYS = {"split_kind": str, "examples": (int, str), "k_shot": int, "seed": int, "grid_size": int,
                  "num_resampling": int, "percentage_train": float, "percentage_dev": float,
-                 "cut_off_target_length": int, "path": str, "augment": str, "augment_seed": int}
+                 "cut_off_target_length": int, "path": str, "augment": str, "augment_seed": int,
+                 "keep_held_out": bool}
 _RUN_KEYS = ("name", "column", "title", "paper", "config", "data", "seeds", "set", "splits", "max_eval_examples")
 _EVAL_KEYS = ("max_examples", "batch_size")
 
@@ -244,7 +248,7 @@ def _dataset(name, spec, where: str) -> DataRecipe:
     for field_name, value in spec.items():
         kinds = _DATASET_KEYS[field_name]
         kinds = (int, float) if kinds is float else kinds
-        if not isinstance(value, kinds) or isinstance(value, bool):
+        if not isinstance(value, kinds) or (isinstance(value, bool) and kinds is not bool):
             raise PlanError(f"{where}: {key}.{field_name} has the wrong type: {quoted(value)}")
         values[field_name] = value
     kind = values.get("split_kind", "compositional")
@@ -262,13 +266,14 @@ def _dataset(name, spec, where: str) -> DataRecipe:
 
 def _augment_keys(values: dict, where: str, key: str) -> None:
     """`augment` names a method of `gscan-ros augment` and applies to generated data only;
-    `augment_seed` goes with it."""
+    `augment_seed` and `keep_held_out` go with it."""
     from gscan_ros.data.geca import AUGMENT_METHODS
 
     method = values.get("augment")
     if method is None:
-        if "augment_seed" in values:
-            raise PlanError(f"{where}: {key}.augment_seed needs {key}.augment")
+        for dependent in ("augment_seed", "keep_held_out"):
+            if dependent in values:
+                raise PlanError(f"{where}: {key}.{dependent} needs {key}.augment")
         return
     if method not in AUGMENT_METHODS:
         raise PlanError(f"{where}: {key}.augment must be one of {list(AUGMENT_METHODS)}, got {quoted(method)}")

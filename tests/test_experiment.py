@@ -145,28 +145,32 @@ GECA_TINY = {**TINY, "model": {"hidden": 8, "embedding_dim": 8, "cnn_channels": 
 GECA_DATA = {**TINY_DATA, "augment": "geca"}
 
 
-def write_geca_plan(root: Path) -> Path:
+def write_geca_plan(root: Path, **data) -> Path:
     runs = [{"name": "geca", "config": str(REPO / "configs/geca.yaml"), "data": "tiny", "seeds": [0],
              "splits": SPLITS}]
-    return write_plan(root / "plan.yaml", root, defaults=GECA_TINY, runs=runs, data=GECA_DATA)
+    return write_plan(root / "plan.yaml", root, defaults=GECA_TINY, runs=runs, data={**GECA_DATA, **data})
 
 
 @pytest.mark.slow
-def test_runner_augments_the_generated_dataset_and_trains_on_it(tmp_path):
-    assert experiment(write_geca_plan(tmp_path)) == 0
+@pytest.mark.parametrize("keep", [False, True], ids=["held-out kinds dropped", "kept"])
+def test_runner_augments_the_generated_dataset_and_trains_on_it(tmp_path, keep):
+    assert experiment(write_geca_plan(tmp_path, **({"keep_held_out": True} if keep else {}))) == 0
     (data,) = (tmp_path / "data").iterdir()  # the base dataset's scratch folder is gone
     assert sorted(p.name for p in data.iterdir()) == ["dataset.txt", "generate.log", "recipe.json"]
     base, log = augment_base(data), (data / "generate.log").read_text()
     assert f"gscan-ros generate --out {base} --split-kind compositional --seed 0 --format mcap --examples 300" in log
-    assert f"gscan-ros augment --data {base} --out {data} --method geca --seed 0 --quiet\n" in log
-    base_train, train = read_header(data / "dataset.txt").extra["gscan_ros"]["augmentation"]["train_indices"]
+    flag = " --keep-held-out" if keep else ""
+    assert f"gscan-ros augment --data {base} --out {data} --method geca --seed 0{flag} --quiet\n" in log
+    augmentation = read_header(data / "dataset.txt").extra["gscan_ros"]["augmentation"]
+    assert augmentation["keep_held_out"] is keep
+    base_train, train = augmentation["train_indices"]
     assert train > base_train
     run = tmp_path / "results/geca_s0"
     start = json.loads((run / "metrics.jsonl").read_text().splitlines()[0])
     assert start["event"] == "start" and start["train_examples"] == train  # the augmented train split
     results = json.loads((run / "results.json").read_text())
-    assert (results["data"]["augment"], results["data"]["augment_seed"], results["data"]["dir"]) == \
-        ("geca", 0, str(data))
+    assert (results["data"]["augment"], results["data"]["augment_seed"], results["data"]["keep_held_out"],
+            results["data"]["dir"]) == ("geca", 0, keep, str(data))
     assert set(results["splits"]) == set(SPLITS) and results["splits"]["test"]["examples"] == 5
     assert json.loads((data / "recipe.json").read_text())["augment"] == "geca"
 
@@ -360,7 +364,8 @@ def test_paper_plan_covers_every_column_with_one_recipe():
     columns = {column for column, _ in seeds}
     main = {"seq2seq", "geca", "auxloss", "lcgn", "state", "attention+state", "constituency", "dependency",
             "semantic"}
-    assert columns == main | {"seq2seq_160k", "auxloss_160k", "geca_keep_held_out", "semantic_minmax", "semantic_add", "dependency_cosine",
+    assert columns == main | {"seq2seq_160k", "auxloss_160k", "geca_keep_held_out", "semantic_minmax",
+                              "semantic_add", "dependency_cosine",
                               "semantic_faithful", "semantic_percommand", "semantic_percommand_screened",
                               "semantic_oversample", "semantic_screened", "attention+state_screened",
                               "semantic_len15_percommand", "semantic_len15_minmax", "semantic_len15_faithful",

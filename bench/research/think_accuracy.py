@@ -37,6 +37,11 @@ def wrong_guess(situation, cell: int) -> str:
     return "same colour" if here.color == target.color else "other object"
 
 
+def pct(flags: np.ndarray) -> float | None:
+    """Percent of True in `flags`, None for none."""
+    return round(100.0 * float(flags.mean()), 2) if len(flags) else None
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--checkpoint", required=True, help="an AuxLoss checkpoint (model.pt of a finished run)")
@@ -88,9 +93,6 @@ def main() -> None:
         right = guesses == targets
         kinds = [wrong_guess(ep.situation, int(g)) for ep, g, ok in zip(episodes, guesses, right) if not ok]
         exact = np.array([p.exact_match for p in evaluate_episodes(policy, episodes).predictions])
-
-        def pct(flags: np.ndarray) -> float | None:
-            return round(100.0 * float(flags.mean()), 2) if len(flags) else None
 
         row = {"split": split, "episodes": len(episodes), "think": pct(right), "exact_match": pct(exact),
                "exact_when_right": pct(exact[right]), "exact_when_wrong": pct(exact[~right]),

@@ -1,4 +1,6 @@
 """GscanCommander against an in-process stack (scripted policy): one EpisodeResult per command, each outcome."""
+import threading
+
 import pytest
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
@@ -84,6 +86,24 @@ def test_another_command_preempts_the_episode(probe, commander, checkpoint):
     # The other command is published inside the third step, whose action still goes out.
     assert result.outcome is Outcome.PREEMPTED and result.steps == 3
     assert result.reason == "'walk to a red circle': a new command came after 3 actions"
+
+
+def test_actions_that_come_after_the_end_report_still_count(probe, checkpoint, monkeypatch):
+    """Actions and reports travel on different topics: an ending without <eos> still waits for
+    the actions published before it (here every action is held back 0.1 s on arrival)."""
+    on_action = GscanCommander._on_action
+    monkeypatch.setattr(GscanCommander, "_on_action",
+                        lambda self, data, info: threading.Timer(0.1, on_action, (self, data, info)).start())
+    other = probe.node.create_publisher(String, "command", EVENT_QOS)
+
+    def command_at_step_2(t):
+        if t == 2:
+            other.publish(String(data="push a big square"))
+
+    with GscanCommander(context=probe.context) as commander:
+        start(probe, commander, checkpoint, [WALK], on_step=command_at_step_2)
+        result = commander.run_episode("walk to a red circle", timeout=TIMEOUT)
+    assert result.outcome is Outcome.PREEMPTED and result.actions == [WALK] * 3
 
 
 def test_an_episode_without_end_times_out_and_reset_world_answers(probe, commander, checkpoint):

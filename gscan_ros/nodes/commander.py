@@ -57,6 +57,9 @@ READY_TIMEOUT_S = 60.0
 # After the end report: how long to wait for the episode's last actions and its graph
 # (topics are not ordered with each other).
 LATE_GRACE_S = 5.0
+# An ending without <eos> (preempted, rejected) marks no last action: its actions are in once
+# the action topic has been quiet this long after the end report.
+QUIET_S = 0.3
 POLL_S = 0.02
 # Topics the stack must be listening on before a command is sent (`wait_until_ready`).
 STACK_INPUTS = (COMMAND, COMMAND_GRAPH, OBSERVATION, ACTION)
@@ -130,6 +133,7 @@ class GscanCommander(Node):
         self._executor.add_node(self)
         self.status_log: list[str] = []  # every status line since the commander started
         self._actions: list[tuple[int, int, Action]] = []  # (source ns, received ns, action) since the last send
+        self._last_action_at = 0.0  # monotonic time the latest action came
         self._graphs: list[tuple[int, bytes]] = []  # (source ns, serialized graph) since the last send
         self._reports: list[tuple[int, es.EpisodeStatus]] = []  # (source ns, report) since the last send
         self._attention: dict[str, list[tuple[int, bytes]]] = {}
@@ -174,6 +178,7 @@ class GscanCommander(Node):
         except GscanError:
             return  # not an action; the world simulator reports it
         self._actions.append((info["source_timestamp"], info["received_timestamp"], action))
+        self._last_action_at = time.monotonic()
 
     def _on_status(self, data: bytes) -> None:
         try:
@@ -276,8 +281,9 @@ class GscanCommander(Node):
             if end is None:
                 self._executor.spin_once(timeout_sec=POLL_S)
         if end is not None and episode is not None:  # its last actions and graph may still be on their way
-            grace = min(deadline, time.monotonic() + LATE_GRACE_S)
-            while time.monotonic() < grace and not self._settled(command, sent_ns, episode[0], end):
+            ended_at = time.monotonic()
+            grace = min(deadline, ended_at + LATE_GRACE_S)
+            while time.monotonic() < grace and not self._settled(command, sent_ns, episode[0], end, ended_at):
                 self._executor.spin_once(timeout_sec=POLL_S)
         start_ns = episode[0] if episode is not None else sent_ns
         end_ns = end[0] if end is not None else time.time_ns()
@@ -297,13 +303,15 @@ class GscanCommander(Node):
             attention={word: [m for t, m in maps if t >= sent_ns] for word, maps in self._attention.items()},
         )
 
-    def _settled(self, command: str, sent_ns: int, start_ns: int, end: tuple[int, es.EpisodeStatus]) -> bool:
-        """Everything about the ended episode has arrived: the command's graph and, when it
-        ended with `<eos>`, that action (the policy's actions arrive in order)."""
+    def _settled(self, command: str, sent_ns: int, start_ns: int, end: tuple[int, es.EpisodeStatus],
+                 ended_at: float) -> bool:
+        """Everything about the ended episode has arrived: the command's graph and its last
+        action: the `<eos>` when it ended with one (the policy's actions arrive in order), else
+        whatever came before the action topic fell quiet for QUIET_S after the end report."""
         if self._graph_of(command, sent_ns) is None:
             return False
         if end[1].outcome not in (es.COMPLETE, es.CUT):
-            return True
+            return time.monotonic() - max(ended_at, self._last_action_at) >= QUIET_S
         return any(start_ns < t <= end[0] and a is Action.EOS for t, _, a in self._actions)
 
     def _graph_of(self, command: str, sent_ns: int) -> tuple[int, CommandGraph] | None:

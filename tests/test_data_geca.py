@@ -1,5 +1,7 @@
 """GECA augmentation (`gscan-ros augment --method geca`): the substitution itself, the hold-out
 filter, determinism, grounded examples, untouched splits and the CLI's refusals."""
+import re
+
 import pytest
 
 from gscan_ros.cli import main
@@ -8,6 +10,7 @@ from gscan_ros.data.dataset import Example, iter_raw_examples, read_header
 from gscan_ros.data.geca import augment
 from gscan_ros.data.generate import GenerationConfig, generate_dataset
 from gscan_ros.data.io import iter_episodes
+from gscan_ros.errors import GscanError
 from gscan_ros.world import demonstrate
 from gscan_ros.world.command import split_command
 from gscan_ros.world.types import Heading, Position, Situation, WorldObject
@@ -44,7 +47,24 @@ def test_a_kind_the_dataset_holds_out_is_dropped_unless_kept():
     dropped = augment(TRAIN, examples=5, seed=0, held_out=["visual_easier"])
     assert dropped.added == [] and dropped.held_out_kinds == {"visual_easier": 1}
     kept = augment(TRAIN, examples=5, seed=0, held_out=["visual_easier"], keep_held_out=True)
-    assert [e.command for e in kept.added] == ["walk to a yellow square"]
+    assert [e.command for e in kept.added] == ["walk to a yellow square"] and kept.keep_held_out == ["visual_easier"]
+
+
+SOUTH_WEST = [*TRAIN[:2], _example("walk to a red square", "square", "red", (0, 3), (2, 1))]
+
+
+@pytest.mark.parametrize(("keep", "added"), [
+    (True, 1), (["visual_easier"], 0), (["situational_1"], 0), (["visual_easier", "situational_1"], 1)])
+def test_named_kinds_are_kept_when_every_split_claiming_the_example_is_named(keep, added):
+    """The yellow square south-west of the agent is claimed by B and D: both must be kept."""
+    report = augment(SOUTH_WEST, examples=5, seed=0, held_out=["visual_easier", "situational_1"], keep_held_out=keep)
+    assert report.held_out_kinds == {"visual_easier": 1, "situational_1": 1} and len(report.added) == added
+
+
+def test_keeping_a_split_the_dataset_does_not_hold_out_is_refused():
+    with pytest.raises(GscanError, match=r"--keep-held-out visual: not a hold-out split of the dataset "
+                                         r"\(it has visual_easier\)"):
+        augment(TRAIN, examples=5, seed=0, held_out=["visual_easier"], keep_held_out=["visual"])
 
 
 @pytest.fixture(scope="module")
@@ -112,6 +132,30 @@ def test_bad_input_is_one_line_exit_1_and_writes_nothing(tmp_path, capsys, conte
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("gscan-ros augment: error:") and names in err[0], err
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(("keep", "error"), [
+    (["bogus"], "--keep-held-out bogus: not a hold-out split of the dataset (it has adverb_1, "),
+    (["visual", "target_lengths"], "--keep-held-out target_lengths: not a hold-out split of the dataset (it has "),
+])
+def test_keeping_an_unknown_split_is_one_line_exit_1(dataset, tmp_path, capsys, keep, error):
+    """A name no dataset holds out is refused before the input is read; one the input lacks
+    (compositional data has no target_lengths) after, with the splits it has."""
+    argv = ["augment", "--data", str(dataset), "--out", str(tmp_path / "out"), "--method", "geca", "--quiet",
+            "--keep-held-out", *keep]
+    assert main(argv) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and error in err[0], err
+    assert not (tmp_path / "out" / "dataset.txt").exists()
+
+
+def test_named_kept_splits_are_recorded_and_reported(dataset, tmp_path, capsys):
+    path = _augmented(dataset, tmp_path / "a", 0, "--keep-held-out", "visual", "visual_easier")
+    record = read_header(path).extra["gscan_ros"]["augmentation"]
+    assert record["keep_held_out"] == ["visual", "visual_easier"] and "situational_1" in record["held_out"]
+    kinds = dict(re.findall(r"proposals of the kind of (\w+): \d+ \((\w+)\)", capsys.readouterr().out))
+    assert "situational_1" in kinds and all((state == "added") == (split in ("visual", "visual_easier"))
+                                            for split, state in kinds.items()), kinds
 
 
 def test_the_output_folder_may_not_be_the_input_folder(dataset, capsys):

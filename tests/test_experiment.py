@@ -152,17 +152,17 @@ def write_geca_plan(root: Path, **data) -> Path:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("keep", [False, True], ids=["held-out kinds dropped", "kept"])
+@pytest.mark.parametrize("keep", [False, True, ["visual"]], ids=["held-out kinds dropped", "kept", "visual kept"])
 def test_runner_augments_the_generated_dataset_and_trains_on_it(tmp_path, keep):
-    assert experiment(write_geca_plan(tmp_path, **({"keep_held_out": True} if keep else {}))) == 0
+    assert experiment(write_geca_plan(tmp_path, **({"keep_held_out": keep} if keep else {}))) == 0
     (data,) = (tmp_path / "data").iterdir()  # the base dataset's scratch folder is gone
     assert sorted(p.name for p in data.iterdir()) == ["dataset.txt", "generate.log", "recipe.json"]
     base, log = augment_base(data), (data / "generate.log").read_text()
     assert f"gscan-ros generate --out {base} --split-kind compositional --seed 0 --format mcap --examples 300" in log
-    flag = " --keep-held-out" if keep else ""
+    flag = "".join(f" {word}" for word in ["--keep-held-out", *(keep if isinstance(keep, list) else [])] if keep)
     assert f"gscan-ros augment --data {base} --out {data} --method geca --seed 0{flag} --quiet\n" in log
     augmentation = read_header(data / "dataset.txt").extra["gscan_ros"]["augmentation"]
-    assert augmentation["keep_held_out"] is keep
+    assert augmentation["keep_held_out"] == (augmentation["held_out"] if keep is True else keep or [])
     base_train, train = augmentation["train_indices"]
     assert train > base_train
     run = tmp_path / "results/geca_s0"
@@ -209,15 +209,19 @@ def test_augment_keys_give_the_dataset_a_folder_of_its_own():
     assert folders["compositional_geca"] == "compositional_geca-a793018d"  # as before `keep_held_out`
     plain, geca = DataRecipe("x", seed=3), DataRecipe("x", seed=3, augment="geca")
     assert geca.augment_seed == 3 and geca.directory(Path("d")) == replace(geca, augment_seed=3).directory(Path("d"))
-    kept = replace(geca, keep_held_out=True)
+    kept, visual = replace(geca, keep_held_out=True), replace(geca, keep_held_out=("visual",))
     assert kept.augment_flags() == ["--method", "geca", "--seed", "3", "--keep-held-out"]
+    assert visual.augment_flags() == ["--method", "geca", "--seed", "3", "--keep-held-out", "visual"]
     assert "--keep-held-out" not in geca.augment_flags()
-    assert len({r.directory(Path("d")) for r in (plain, geca, replace(geca, augment_seed=4), kept)}) == 4
+    assert len({r.directory(Path("d")) for r in (plain, geca, replace(geca, augment_seed=4), kept, visual)}) == 5
 
 
 @pytest.mark.parametrize(("dataset", "message"), [
     ({"keep_held_out": True}, "keep_held_out needs datasets.tiny.augment"),
     ({"augment": "geca", "keep_held_out": "yes"}, "keep_held_out has the wrong type"),
+    ({"augment": "geca", "keep_held_out": ["visual", "bogus"]}, "keep_held_out must be true, false or a list of "
+                                                                 "hold-out splits"),
+    ({"augment": "geca", "keep_held_out": []}, "keep_held_out must be true, false or a list"),
     ({"augment": "geca", "seed": True}, "seed has the wrong type")])
 def test_bad_augment_keys_are_refused_by_name(tmp_path, dataset, message):
     path = write_plan(tmp_path / "plan.yaml", tmp_path, data={**TINY_DATA, **dataset})
@@ -364,8 +368,8 @@ def test_paper_plan_covers_every_column_with_one_recipe():
     columns = {column for column, _ in seeds}
     main = {"seq2seq", "geca", "auxloss", "lcgn", "state", "attention+state", "constituency", "dependency",
             "semantic"}
-    assert columns == main | {"seq2seq_160k", "auxloss_160k", "geca_keep_held_out", "semantic_minmax",
-                              "semantic_add", "dependency_cosine",
+    assert columns == main | {"seq2seq_160k", "auxloss_160k", "geca_keep_held_out", "geca_command_kinds",
+                              "semantic_minmax", "semantic_add", "dependency_cosine",
                               "semantic_faithful", "semantic_percommand", "semantic_percommand_screened",
                               "semantic_oversample", "semantic_screened", "attention+state_screened",
                               "semantic_len15_percommand", "semantic_len15_minmax", "semantic_len15_faithful",

@@ -26,9 +26,10 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=nonnegative_int, default=0, help="random seed (default: 0)")
     p.add_argument("--examples", type=positive_int, default=RELEASED_ADDED_EXAMPLES, metavar="N",
                    help=f"examples to add (default: {RELEASED_ADDED_EXAMPLES:,}, as Ruis et al.)")
-    p.add_argument("--keep-held-out", action="store_true",
+    p.add_argument("--keep-held-out", nargs="*", metavar="SPLIT",
                    help="also add examples of a kind a hold-out split of the dataset claims (e.g. a red "
-                        "square target); dropped by default")
+                        "square target: visual), of every such split, or only of the SPLITs named (an "
+                        "example two splits claim needs both); dropped by default")
     p.add_argument("--overwrite", action="store_true", help="replace DIR/dataset.txt if it exists")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -40,7 +41,8 @@ def run(args: argparse.Namespace) -> int:
     from gscan_ros.data.geca import augment_dataset
 
     report = augment_dataset(args.data, args.out, examples=args.examples, seed=args.seed,
-                             keep_held_out=args.keep_held_out, overwrite=args.overwrite, progress=not args.quiet)
+                             keep_held_out=_keep(args.keep_held_out), overwrite=args.overwrite,
+                             progress=not args.quiet)
     added = len(report.added)
     print(f"wrote {args.out}/dataset.txt: train {report.train_examples} + {added} GECA examples "
           f"(seed {report.seed}) in {report.seconds:.1f} s")
@@ -49,8 +51,15 @@ def run(args: argparse.Namespace) -> int:
     for reason, n in sorted(report.dropped.items()):
         print(f"  dropped: {reason}: {n}")
     for split, n in sorted(report.held_out_kinds.items()):
-        print(f"  proposals of the kind of {split}: {n} ({'added' if report.keep_held_out else 'dropped'})")
+        print(f"  proposals of the kind of {split}: {n} ({'added' if split in report.keep_held_out else 'dropped'})")
     if added < report.requested:
         print(f"gscan-ros augment: warning: the templates ran out after {added} of {report.requested} examples",
               file=sys.stderr)
     return 0
+
+
+def _keep(names: list[str] | None) -> bool | list[str]:
+    """--keep-held-out: absent, bare (every hold-out split), or the splits named."""
+    if names is None:
+        return False
+    return names or True

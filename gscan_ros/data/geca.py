@@ -94,7 +94,7 @@ class GecaReport:
     requested: int
     seed: int
     held_out: list[str]  # the dataset's hold-out splits
-    keep_held_out: bool = False  # whether proposals of their kinds are added
+    keep_held_out: list[str] = field(default_factory=list)  # those whose kinds' proposals are added
     train_examples: int = 0
     grid_size: int = 0  # of the train situations
     train_pairs: int = 0  # distinct (command, actions) pairs of the train split
@@ -241,24 +241,38 @@ class _Templates:
 
 
 def augment(train: Iterable[Example], examples: int = RELEASED_ADDED_EXAMPLES, seed: int = 0,
-            held_out: Iterable[str] = (), keep_held_out: bool = False) -> GecaReport:
+            held_out: Iterable[str] = (), keep_held_out: bool | Iterable[str] = False) -> GecaReport:
     """Up to `examples` new train examples by GECA, each in a situation where the planner
     gives exactly its actions; fewer when the templates run out (the report says).
 
     `held_out` names the dataset's hold-out splits (`splits.HOLD_OUT_RULES`, and
     `target_lengths`: longer than any train target); a proposal of a kind one of them
-    claims is dropped, unless `keep_held_out`.
+    claims is dropped, unless `keep_held_out` keeps every split that claims it (True: all).
     """
-    return _generate(_Corpus.of(train), examples, seed, frozenset(held_out), keep_held_out)
+    held_out = frozenset(held_out)
+    return _generate(_Corpus.of(train), examples, seed, held_out, kept_splits(keep_held_out, held_out))
+
+
+def kept_splits(keep_held_out: bool | Iterable[str], held_out: frozenset[str]) -> frozenset[str]:
+    """The hold-out splits whose kinds are added: all of `held_out` for True, none for
+    False, else the named ones; GscanError for a name that is not one of `held_out`."""
+    if isinstance(keep_held_out, bool):
+        return held_out if keep_held_out else frozenset()
+    keep = frozenset(keep_held_out)
+    unknown = sorted(keep - held_out)
+    if unknown:
+        raise GscanError(f"--keep-held-out {' '.join(unknown)}: not a hold-out split of the dataset "
+                         f"(it has {', '.join(sorted(held_out)) or 'none'})")
+    return keep
 
 
 def _generate(corpus: _Corpus, examples: int, seed: int, held_out: frozenset[str],
-              keep_held_out: bool) -> GecaReport:
+              keep: frozenset[str]) -> GecaReport:
     start = time.perf_counter()
     templates = _Templates.build(corpus)
     substitutes = templates.substitutes()
     report = GecaReport(added=[], requested=examples, seed=seed, held_out=sorted(held_out),
-                        keep_held_out=keep_held_out,
+                        keep_held_out=sorted(keep),
                         train_examples=corpus.examples, grid_size=corpus.origins[0].grid_size,
                         train_pairs=len(corpus.sequences), templates=len(templates))
     productive = np.array([bool(s) for s in substitutes])[templates.fillers]
@@ -292,7 +306,7 @@ def _generate(corpus: _Corpus, examples: int, seed: int, held_out: frozenset[str
                 continue
             kinds = _held_out_kinds(*grounded, held_out, corpus.longest)
             report.held_out_kinds.update(kinds)
-            if kinds and not keep_held_out:
+            if not keep.issuperset(kinds):
                 report.dropped["kind of a held-out split"] += 1
                 continue
             report.added.append(grounded[1])
@@ -385,11 +399,13 @@ def _situation(rng: np.random.Generator, command: Command, placement: Placement,
 # Datasets on disk
 # ---------------------------------------------------------------------------------------
 def augment_dataset(data: str | os.PathLike, out_dir: str | os.PathLike, *, examples: int = RELEASED_ADDED_EXAMPLES,
-                    seed: int = 0, keep_held_out: bool = False, overwrite: bool = False,
+                    seed: int = 0, keep_held_out: bool | Iterable[str] = False, overwrite: bool = False,
                     progress: bool = False) -> GecaReport:
     """Write `out_dir/dataset.txt`: the dataset at `data` (dataset.txt or bags) with its train
     split followed by the GECA examples, every other split as it was. Proposals of a kind
-    that one of the input's hold-out splits claims are dropped unless `keep_held_out`.
+    that one of the input's hold-out splits claims are dropped unless `keep_held_out` keeps
+    every split claiming them (True: all; or split names, checked before the input is read
+    against every hold-out split and after against the input's).
 
     The output must not be the input's folder, and an existing dataset.txt there is
     replaced only with `overwrite`. The splits are staged in a scratch folder of
@@ -398,6 +414,8 @@ def augment_dataset(data: str | os.PathLike, out_dir: str | os.PathLike, *, exam
     from gscan_ros.outputs import check_targets, claimed, scratch
 
     start = time.perf_counter()
+    if not isinstance(keep_held_out, bool):
+        keep_held_out = kept_splits(keep_held_out, HOLD_OUT_SPLITS)
     out_dir = Path(out_dir)
     source = Path(data)
     if (source if source.is_dir() else source.parent).resolve() == out_dir.resolve():
@@ -412,7 +430,7 @@ def augment_dataset(data: str | os.PathLike, out_dir: str | os.PathLike, *, exam
             with ExitStack() as files:
                 corpus = _Corpus.of(_staged(_dataset_lines(data, progress), stage, splits, files))
             held_out = frozenset(splits) & HOLD_OUT_SPLITS
-            report = _generate(corpus, examples, seed, held_out, keep_held_out)
+            report = _generate(corpus, examples, seed, held_out, kept_splits(keep_held_out, held_out))
             lines = {split: _lines(path, report.added if split == TRAIN else ()) for split, path in splits.items()}
             write_dataset_json(target, _header(data, report), lines)
     report.seconds = time.perf_counter() - start

@@ -44,7 +44,8 @@ class DataRecipe:
     path: str | None = None
     augment: str | None = None  # a `gscan-ros augment --method`
     augment_seed: int | None = None  # its --seed; None: `seed`
-    keep_held_out: bool = False  # its --keep-held-out: additions of a held-out split's kind stay
+    keep_held_out: bool | tuple[str, ...] = False  # its --keep-held-out: additions of those held-out
+    # splits' kinds stay (True: of every one)
 
     def __post_init__(self):
         if self.augment is not None and self.augment_seed is None:
@@ -66,7 +67,10 @@ class DataRecipe:
         """`gscan-ros augment` arguments (besides --data, --out, --quiet); none without `augment`."""
         if self.augment is None:
             return []
-        return ["--method", self.augment, "--seed", str(self.augment_seed)] + ["--keep-held-out"] * self.keep_held_out
+        out = ["--method", self.augment, "--seed", str(self.augment_seed)]
+        if self.keep_held_out:
+            out += ["--keep-held-out", *([] if self.keep_held_out is True else self.keep_held_out)]
+        return out
 
     def directory(self, data_root: Path) -> Path:
         """`path`, or `<data_root>/<name>-<hash of the flags>` (new flags, new folder; a
@@ -80,7 +84,10 @@ class DataRecipe:
         """What results.json says about the data."""
         keys = ("name", "split_kind", "examples", "k_shot", "seed", "cut_off_target_length", "path", "augment",
                 "augment_seed", "keep_held_out")
-        return {k: getattr(self, k) for k in keys}
+        out = {k: getattr(self, k) for k in keys}
+        if isinstance(self.keep_held_out, tuple):
+            out["keep_held_out"] = list(self.keep_held_out)
+        return out
 
 
 @dataclass(frozen=True)
@@ -130,7 +137,7 @@ _TOP_KEYS = ("results", "data_root", "defaults", "evaluation", "datasets", "runs
 _DATASET_KEYS = {"split_kind": str, "examples": (int, str), "k_shot": int, "seed": int, "grid_size": int,
                  "num_resampling": int, "percentage_train": float, "percentage_dev": float,
                  "cut_off_target_length": int, "path": str, "augment": str, "augment_seed": int,
-                 "keep_held_out": bool}
+                 "keep_held_out": (bool, list)}
 _RUN_KEYS = ("name", "column", "title", "paper", "config", "data", "seeds", "set", "splits", "max_eval_examples")
 _EVAL_KEYS = ("max_examples", "batch_size")
 
@@ -247,8 +254,8 @@ def _dataset(name, spec, where: str) -> DataRecipe:
     values = {}
     for field_name, value in spec.items():
         kinds = _DATASET_KEYS[field_name]
-        kinds = (int, float) if kinds is float else kinds
-        if not isinstance(value, kinds) or (isinstance(value, bool) and kinds is not bool):
+        kinds = (int, float) if kinds is float else kinds if isinstance(kinds, tuple) else (kinds,)
+        if not isinstance(value, kinds) or (isinstance(value, bool) and bool not in kinds):
             raise PlanError(f"{where}: {key}.{field_name} has the wrong type: {quoted(value)}")
         values[field_name] = value
     kind = values.get("split_kind", "compositional")
@@ -267,8 +274,14 @@ def _dataset(name, spec, where: str) -> DataRecipe:
 def _augment_keys(values: dict, where: str, key: str) -> None:
     """`augment` names a method of `gscan-ros augment` and applies to generated data only;
     `augment_seed` and `keep_held_out` go with it."""
-    from gscan_ros.data.geca import AUGMENT_METHODS
+    from gscan_ros.data.geca import AUGMENT_METHODS, HOLD_OUT_SPLITS
 
+    keep = values.get("keep_held_out")
+    if isinstance(keep, list):
+        if not keep or not all(isinstance(name, str) and name in HOLD_OUT_SPLITS for name in keep):
+            raise PlanError(f"{where}: {key}.keep_held_out must be true, false or a list of hold-out splits "
+                            f"({', '.join(sorted(HOLD_OUT_SPLITS))}), got {quoted(keep)}")
+        values["keep_held_out"] = tuple(sorted(set(keep)))
     method = values.get("augment")
     if method is None:
         for dependent in ("augment_seed", "keep_held_out"):

@@ -63,6 +63,9 @@ QUIET_S = 0.3
 POLL_S = 0.02
 # Topics the stack must be listening on before a command is sent (`wait_until_ready`).
 STACK_INPUTS = (COMMAND, COMMAND_GRAPH, OBSERVATION, ACTION)
+# Topics whose stack publishers the commander must be matched with by then: an episode can
+# end before a late subscription matches, and these say what it did.
+STACK_OUTPUTS = (COMMAND_GRAPH, EPISODE_STATUS, ACTION, STATUS)
 
 
 class Outcome(enum.StrEnum):
@@ -139,12 +142,15 @@ class GscanCommander(Node):
         self._attention: dict[str, list[tuple[int, bytes]]] = {}
         self._command_pub = self.create_publisher(String, COMMAND, qos_profile(interface.COMMAND))
         self._reset_client = self.create_client(Trigger, RESET_WORLD)
-        self.create_subscription(String, ACTION, self._on_action, qos_profile(interface.ACTION), raw=True)
-        self.create_subscription(String, STATUS, self._on_status, qos_profile(interface.STATUS), raw=True)
-        self.create_subscription(GoalStatus, EPISODE_STATUS, self._on_report, qos_profile(interface.EPISODE_STATUS),
-                                 raw=True)
-        self.create_subscription(String, COMMAND_GRAPH, self._on_graph,
-                                 qos_profile(interface.COMMAND_GRAPH, depth=interface.LOG_DEPTH), raw=True)
+        self._outputs = {
+            ACTION: self.create_subscription(String, ACTION, self._on_action, qos_profile(interface.ACTION), raw=True),
+            STATUS: self.create_subscription(String, STATUS, self._on_status, qos_profile(interface.STATUS), raw=True),
+            EPISODE_STATUS: self.create_subscription(GoalStatus, EPISODE_STATUS, self._on_report,
+                                                     qos_profile(interface.EPISODE_STATUS), raw=True),
+            COMMAND_GRAPH: self.create_subscription(String, COMMAND_GRAPH, self._on_graph,
+                                                    qos_profile(interface.COMMAND_GRAPH, depth=interface.LOG_DEPTH),
+                                                    raw=True),
+        }
         self.watch_attention(attention_words)
 
     @classmethod
@@ -212,8 +218,10 @@ class GscanCommander(Node):
 
     def wait_until_ready(self, timeout: float = READY_TIMEOUT_S) -> None:
         """Wait until something listens on the stack's inputs (command, command graph,
-        observation, action) and `reset_world` is served: a command sent now is parsed,
-        followed and executed. Any node names do: renamed or namespaced stacks too."""
+        observation, action), `reset_world` is served and the commander hears the stack's
+        outputs (command graph, episode status, action, status): a command sent now is parsed,
+        followed and executed, and what happens is heard. Any node names do: renamed or
+        namespaced stacks too."""
         me = self.get_name()
 
         def ready() -> bool:
@@ -221,10 +229,13 @@ class GscanCommander(Node):
                 infos = self.get_subscriptions_info_by_topic(self.resolve_topic_name(topic))
                 if not any(i.node_name != me for i in infos):
                     return False
+            if not all(self._outputs[topic].get_publisher_count() > 0 for topic in STACK_OUTPUTS):
+                return False
             return self._reset_client.service_is_ready()
 
         self.spin_until(ready, timeout, "the gscan_ros stack (subscribers on command, command_graph, observation, "
-                                        "action and the reset_world service)")
+                                        "action, publishers of command_graph, episode_status, action, status "
+                                        "and the reset_world service)")
 
     def wait_for_status(self, prefix: str, timeout: float) -> str:
         """The first status line (since the commander started) that starts with `prefix`."""

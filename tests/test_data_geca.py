@@ -154,7 +154,7 @@ def test_named_kept_splits_are_recorded_and_reported(dataset, tmp_path, capsys):
     record = read_header(path).extra["gscan_ros"]["augmentation"]
     assert record["keep_held_out"] == ["visual", "visual_easier"] and "situational_1" in record["held_out"]
     kinds = dict(re.findall(r"proposals of the kind of (\w+): \d+ \((\w+)\)", capsys.readouterr().out))
-    assert "situational_1" in kinds and all((state == "added") == (split in ("visual", "visual_easier"))
+    assert "situational_1" in kinds and all((state == "kept") == (split in ("visual", "visual_easier"))
                                             for split, state in kinds.items()), kinds
 
 

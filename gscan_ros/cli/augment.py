@@ -51,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
     for reason, n in sorted(report.dropped.items()):
         print(f"  dropped: {reason}: {n}")
     for split, n in sorted(report.held_out_kinds.items()):
-        print(f"  proposals of the kind of {split}: {n} ({'added' if split in report.keep_held_out else 'dropped'})")
+        print(f"  proposals of the kind of {split}: {n} ({'kept' if split in report.keep_held_out else 'dropped'})")
     if added < report.requested:
         print(f"gscan-ros augment: warning: the templates ran out after {added} of {report.requested} examples",
               file=sys.stderr)

@@ -40,8 +40,8 @@ def register(subparsers) -> None:
     p.add_argument("--worker", type=worker_share, metavar="I/N",
                    help="take only runs whose index %% N == I, one at a time")
     p.add_argument("--only", nargs="+", default=(), metavar="NAME",
-                   help="only these runs, in this order: runs[] entry names (every seed) or run names such as "
-                        "semantic_s1")
+                   help="only these runs: runs[] entry names (every seed) or run names such as semantic_s1; "
+                        "in the order named within each group (runs to evaluate, then to resume, then new)")
     p.add_argument("--dry-run", action="store_true", help="print what is done, running and left; change nothing")
     p.add_argument("--restart-stale", action="store_true",
                    help="retrain from scratch runs whose config.yaml no longer matches the plan (replaces their files)")

@@ -253,16 +253,17 @@ def augment(train: Iterable[Example], examples: int = RELEASED_ADDED_EXAMPLES, s
     return _generate(_Corpus.of(train), examples, seed, held_out, kept_splits(keep_held_out, held_out))
 
 
-def kept_splits(keep_held_out: bool | Iterable[str], held_out: frozenset[str]) -> frozenset[str]:
-    """The hold-out splits whose kinds are added: all of `held_out` for True, none for
-    False, else the named ones; GscanError for a name that is not one of `held_out`."""
+def kept_splits(keep_held_out: bool | Iterable[str], held_out: frozenset[str],
+                of: str = "the dataset") -> frozenset[str]:
+    """The hold-out splits whose kinds are added: all of `held_out` (those `of`) for True,
+    none for False, else the named ones; GscanError for a name that is not one of `held_out`."""
     if isinstance(keep_held_out, bool):
         return held_out if keep_held_out else frozenset()
     keep = frozenset(keep_held_out)
     unknown = sorted(keep - held_out)
     if unknown:
-        raise GscanError(f"--keep-held-out {' '.join(unknown)}: not a hold-out split of the dataset "
-                         f"(it has {', '.join(sorted(held_out)) or 'none'})")
+        raise GscanError(f"--keep-held-out {' '.join(unknown)}: not a hold-out split of {of} "
+                         f"(those are: {', '.join(sorted(held_out)) or 'none'})")
     return keep
 
 
@@ -415,7 +416,7 @@ def augment_dataset(data: str | os.PathLike, out_dir: str | os.PathLike, *, exam
 
     start = time.perf_counter()
     if not isinstance(keep_held_out, bool):
-        keep_held_out = kept_splits(keep_held_out, HOLD_OUT_SPLITS)
+        keep_held_out = kept_splits(keep_held_out, HOLD_OUT_SPLITS, of="any dataset")
     out_dir = Path(out_dir)
     source = Path(data)
     if (source if source.is_dir() else source.parent).resolve() == out_dir.resolve():

@@ -219,8 +219,8 @@ def test_augment_keys_give_the_dataset_a_folder_of_its_own():
 @pytest.mark.parametrize(("dataset", "message"), [
     ({"keep_held_out": True}, "keep_held_out needs datasets.tiny.augment"),
     ({"augment": "geca", "keep_held_out": "yes"}, "keep_held_out has the wrong type"),
-    ({"augment": "geca", "keep_held_out": ["visual", "bogus"]}, "keep_held_out must be true, false or a list of "
-                                                                 "hold-out splits"),
+    ({"augment": "geca", "keep_held_out": ["visual", "bogus"]},
+     r"datasets.tiny.keep_held_out bogus: not a hold-out split of any dataset \(those are: adverb_1, "),
     ({"augment": "geca", "keep_held_out": []}, "keep_held_out must be true, false or a list"),
     ({"augment": "geca", "seed": True}, "seed has the wrong type")])
 def test_bad_augment_keys_are_refused_by_name(tmp_path, dataset, message):

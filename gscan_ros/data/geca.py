@@ -254,15 +254,16 @@ def augment(train: Iterable[Example], examples: int = RELEASED_ADDED_EXAMPLES, s
 
 
 def kept_splits(keep_held_out: bool | Iterable[str], held_out: frozenset[str],
-                of: str = "the dataset") -> frozenset[str]:
+                of: str = "the dataset", setting: str = "--keep-held-out") -> frozenset[str]:
     """The hold-out splits whose kinds are added: all of `held_out` (those `of`) for True,
-    none for False, else the named ones; GscanError for a name that is not one of `held_out`."""
+    none for False, else the named ones; GscanError, naming `setting`, for a name that is
+    not one of `held_out`."""
     if isinstance(keep_held_out, bool):
         return held_out if keep_held_out else frozenset()
     keep = frozenset(keep_held_out)
     unknown = sorted(keep - held_out)
     if unknown:
-        raise GscanError(f"--keep-held-out {' '.join(unknown)}: not a hold-out split of {of} "
+        raise GscanError(f"{setting} {' '.join(unknown)}: not a hold-out split of {of} "
                          f"(those are: {', '.join(sorted(held_out)) or 'none'})")
     return keep
 

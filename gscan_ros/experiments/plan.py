@@ -274,14 +274,18 @@ def _dataset(name, spec, where: str) -> DataRecipe:
 def _augment_keys(values: dict, where: str, key: str) -> None:
     """`augment` names a method of `gscan-ros augment` and applies to generated data only;
     `augment_seed` and `keep_held_out` go with it."""
-    from gscan_ros.data.geca import AUGMENT_METHODS, HOLD_OUT_SPLITS
+    from gscan_ros.data.geca import AUGMENT_METHODS, HOLD_OUT_SPLITS, kept_splits
 
     keep = values.get("keep_held_out")
     if isinstance(keep, list):
-        if not keep or not all(isinstance(name, str) and name in HOLD_OUT_SPLITS for name in keep):
+        if not keep or not all(isinstance(name, str) for name in keep):
             raise PlanError(f"{where}: {key}.keep_held_out must be true, false or a list of hold-out splits "
                             f"({', '.join(sorted(HOLD_OUT_SPLITS))}), got {quoted(keep)}")
-        values["keep_held_out"] = tuple(sorted(set(keep)))
+        try:
+            kept = kept_splits(keep, HOLD_OUT_SPLITS, of="any dataset", setting=f"{where}: {key}.keep_held_out")
+        except GscanError as error:
+            raise PlanError(str(error)) from None
+        values["keep_held_out"] = tuple(sorted(kept))
     method = values.get("augment")
     if method is None:
         for dependent in ("augment_seed", "keep_held_out"):

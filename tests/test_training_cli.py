@@ -55,6 +55,9 @@ def test_train_resume_evaluate(dataset, tmp_path, kind):
         assert all(p["failure"] in summary["failures"] for p in failed)
     assert all(p["failure"] is None for p in preds if p["exact_match"])
     assert "target not reached" in (out / "results.md").read_text()
+    for summary in results["splits"].values():  # each axis of the groups splits the split's episodes
+        assert all(sum(v["examples"] for v in values.values()) == 5 for values in summary["by_group"].values())
+    assert "| C | moves_target |" in (out / "results.md").read_text()
 
 
 def test_resume_with_another_parser_is_refused(dataset, tmp_path, capsys):

@@ -38,3 +38,19 @@ def test_summary_counts_failures_per_split():
     failures = EvalResult(preds).summary()["test"]["failures"]
     assert list(failures) == list(FAILURE_KINDS)
     assert failures == {"no_stop": 0, "target_not_reached": 2, "wrong_end_state": 0, "right_end_state": 1}
+
+
+def test_summary_groups_episodes_by_whether_the_gold_moves_the_target():
+    """A push against the wall moves nothing: its gold has no PUSH and counts as 'no'."""
+    walled = WorldObject("circle", "red", 1, Position(3, 5))
+    against_wall = Situation(Position(3, 3), Heading.EAST, (walled, WorldObject("square", "blue", 2, Position(0, 0))),
+                             walled)
+    stuck = Episode("push a circle", against_wall, tuple(demonstrate(against_wall, "push a circle")), split="test")
+    assert Action.PUSH not in stuck.actions
+    moved = predicted("push a circle", demonstrate(SITUATION, "push a circle"))
+    assert Action.PUSH in moved.episode.actions
+    preds = [moved, predicted("push a circle", [W]), Prediction(stuck, list(stuck.actions))]
+    groups = EvalResult(preds).summary()["test"]["by_group"]
+    assert groups["moves_target"] == {"no": {"examples": 1, "exact_match": 100.0},
+                                      "yes": {"examples": 2, "exact_match": 50.0}}
+    assert groups["verb"] == {"push": {"examples": 3, "exact_match": 66.67}}

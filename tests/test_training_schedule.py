@@ -108,7 +108,7 @@ def test_training_stops_once_the_target_is_reached(dataset, tmp_path, monkeypatc
     assert records[-1]["event"] == "end" and records[-1]["step"] == 6 and records[-1]["reached_target"] is True
     assert read_checkpoint(run / "last.pt")["step"] == 6
     assert set(validations[0]["dev_by_group"]) == {"verb", "adverb", "size_word", "color_word", "heavy_target",
-                                                   "target_length"}
+                                                   "moves_target", "target_length"}
 
 
 def test_a_new_run_refuses_an_existing_run_directory(dataset, tmp_path, capsys):

@@ -72,7 +72,8 @@ class EvalResult:
     predictions: list[Prediction] = field(default_factory=list)
 
     def summary(self) -> dict:
-        """Per split: examples, exact match %, token accuracy %, exact match per target length."""
+        """Per split: examples, exact match %, token accuracy %, exact match per target
+        length, failures of each kind and exact match per `command_groups` axis."""
         by_split: dict[str, list[Prediction]] = defaultdict(list)
         for p in self.predictions:
             by_split[p.episode.split].append(p)
@@ -92,6 +93,7 @@ class EvalResult:
                     for n, ps in sorted(by_len.items())
                 },
                 "failures": failure_counts(preds),
+                "by_group": episodes_by_group(preds),
             }
         return out
 
@@ -112,8 +114,9 @@ def failure_counts(predictions: Sequence[Prediction]) -> dict[str, int]:
 
 def command_groups(episode: Episode) -> dict[str, str]:
     """The command type of an episode along the axes its concepts vary on: verb, adverb,
-    size word, colour word, a heavy target (push/pull twice per cell) and target length.
-    Used to see which concept a model learns late (docs/model.md)."""
+    size word, colour word, a heavy target (push/pull twice per cell), whether the gold
+    moves the target at all (a push or pull against a wall or object does not) and target
+    length. Used to see which concept a model learns late (docs/model.md)."""
     words = episode.command.split()
     adverb = next((a for a in ADVERBS if episode.command.endswith(" " + a)), "none")
     target = episode.situation.target_object
@@ -125,18 +128,32 @@ def command_groups(episode: Episode) -> dict[str, str]:
         "size_word": next((w for w in words if w in SIZE_ADJECTIVES), "none"),
         "color_word": "yes" if any(w in COLORS for w in words) else "no",
         "heavy_target": "yes" if heavy else "no",
+        "moves_target": "yes" if any(a in (Action.PUSH, Action.PULL) for a in episode.actions) else "no",
         "target_length": "<=8" if n <= 8 else "9-16" if n <= 16 else ">=17",
     }
 
 
-def exact_match_by_group(predictions: Sequence[Prediction]) -> dict[str, dict[str, float]]:
-    """Exact match % per value of each `command_groups` axis, e.g. {"adverb": {"none": 97.1, ...}}."""
+def _hits_by_group(predictions: Sequence[Prediction]) -> dict[str, dict[str, list[bool]]]:
+    """Each `command_groups` axis -> value -> the exact-match flags of its predictions."""
     hits: dict[str, dict[str, list[bool]]] = defaultdict(lambda: defaultdict(list))
     for p in predictions:
         for axis, value in command_groups(p.episode).items():
             hits[axis][value].append(p.exact_match)
-    return {axis: {value: round(_pct(flags), 2) for value, flags in sorted(values.items())}
-            for axis, values in hits.items()}
+    return {axis: dict(sorted(values.items())) for axis, values in hits.items()}
+
+
+def exact_match_by_group(predictions: Sequence[Prediction]) -> dict[str, dict[str, float]]:
+    """Exact match % per value of each `command_groups` axis, e.g. {"adverb": {"none": 97.1, ...}}."""
+    return {axis: {value: round(_pct(flags), 2) for value, flags in values.items()}
+            for axis, values in _hits_by_group(predictions).items()}
+
+
+def episodes_by_group(predictions: Sequence[Prediction]) -> dict[str, dict[str, dict]]:
+    """Episodes and exact match % per value of each `command_groups` axis, e.g.
+    {"moves_target": {"no": {"examples": 8604, "exact_match": 50.5}, ...}}."""
+    return {axis: {value: {"examples": len(flags), "exact_match": round(_pct(flags), 2)}
+                   for value, flags in values.items()}
+            for axis, values in _hits_by_group(predictions).items()}
 
 
 def _pct(flags) -> float:

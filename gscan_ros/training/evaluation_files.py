@@ -27,6 +27,17 @@ def markdown_table(summary: dict, title: str = "") -> str:
     return "\n".join(lines) + "\n"
 
 
+def group_table(summary: dict) -> str:
+    """Exact match per command group (`command_groups`), one row per split and axis:
+    each value's exact match % and episodes, e.g. `no 50.5 % of 8604 · yes 0.0 % of 29978`."""
+    lines = ["| split | axis | exact match % of episodes, per value |", "|---|---|---|"]
+    for split, s in summary.items():
+        for axis, values in s.get("by_group", {}).items():
+            cells = " · ".join(f"{value} {v['exact_match']:.1f} % of {v['examples']}" for value, v in values.items())
+            lines.append(f"| {s['letter'] or split} | {axis} | {cells} |")
+    return "\n".join(lines) + "\n"
+
+
 def prediction_records(result: EvalResult):
     """gSCAN prediction-file entries (the format of LauraRuis/groundedSCAN's
     `example_prediction.json`), CG variant: `attention_weights` is a
@@ -70,7 +81,8 @@ def write_reports(out_dir: str | Path, result: EvalResult, meta: dict, predictio
     summary = result.summary()
     doc = {**meta, "splits": summary}
     write_text(out / "results.json", json.dumps(doc, indent=2))
-    write_text(out / "results.md", markdown_table(summary, meta.get("title", "")))
+    write_text(out / "results.md", markdown_table(summary, meta.get("title", "")) + "\n### By command group\n\n"
+               + group_table(summary))
     if predictions:
         with replacing(out / "predictions.json") as tmp, open(tmp, "w") as f:
             f.write("[\n")

@@ -1,12 +1,13 @@
 """How an episode went, as the policy reports it on `episode_status` (docs/ros.md "Episodes").
 
 The policy announces every episode it starts (`active`) and says how it ended: the model's
-own `<eos>` (`complete`), the `<eos>` it forced at `max_steps` (`cut`), a new command or a
-world reset that replaced it (`preempted`), or a command graph it could not follow
-(`rejected`). Only complete episodes are demonstrations: readers skip the rest unless asked
-(`include_incomplete`) and count them by outcome. One vocabulary for the policy, the bag
-writer and readers, the commander and the reports; `msg_adapters.episode_status` maps it to
-actionlib_msgs/GoalStatus.
+own `<eos>` (`complete`), an `<eos>` it forced (`cut`: at `max_steps`, after a failed step,
+or when no reply came within `step_timeout`), a new command or a world reset that replaced
+it (`preempted`; a recorder ends so an episode still running when its bag closes), or a
+command graph it could not follow (`rejected`). Only complete episodes are
+demonstrations: readers skip the rest unless asked (`include_incomplete`) and count them
+by outcome. One vocabulary for the policy, the bag writer and readers, the commander and
+the reports; `msg_adapters.episode_status` maps it to actionlib_msgs/GoalStatus.
 """
 from __future__ import annotations
 

@@ -54,8 +54,8 @@ GRID_FRAME = "gscan_grid"
 OBSERVATION_ENCODING = "8UC16"
 EARLIER_OBSERVATION_TYPE = "std_msgs/msg/UInt8MultiArray"
 
-# Reader depths: the newest sample only (the policy), or every sample while busy
-# (recorders, test probes).
+# Reader depths: the newest sample only (the policy's world state), or every sample while
+# busy (recorders, test probes, the policy's command graphs: each gets its report).
 LATEST_DEPTH = 1
 LOG_DEPTH = 1000
 

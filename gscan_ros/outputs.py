@@ -6,7 +6,9 @@
 - Nothing half written in place: `replacing(path)` writes a temporary sibling
   (`.<stem>.partial-<pid><suffix>`) and renames it onto `path`; `scratch(folder, name)` is
   a staging folder named the same way. What a killed writer left of either is removed by
-  the next writer of that output, which says so.
+  the next writer of that output, which says so. The rename is `replace_durably`: the
+  file's bytes reach the disk before it, the folder's entry after it, so not even a power
+  cut leaves `path` half written.
 - Never through a symbolic link: a link where an output goes is refused, since writing
   through it would change a file outside the folder the user named (`refuse_links`).
 - Nothing replaced without the user's flag: `check_targets(..., overwrite=False)`.
@@ -104,9 +106,34 @@ def replacing(path: str | os.PathLike) -> Iterator[Path]:
     tmp = partial_path(path)
     try:
         yield tmp
-        os.replace(tmp, path)
+        replace_durably(tmp, path)
     finally:
         _remove(tmp)
+
+
+def replace_durably(tmp: str | os.PathLike, path: str | os.PathLike, keep_old_as: str | os.PathLike | None = None
+                    ) -> None:
+    """Rename the complete file `tmp` onto `path`, durably: `tmp` is synced to the disk
+    before the rename and the folder after it, so a crash, power cut included, leaves the
+    old `path` or the new one, whole. `keep_old_as`: the file `path` held is renamed there
+    first (a crash between the two renames leaves `path` missing and the old file there)."""
+    path = Path(path)
+    fd = os.open(tmp, os.O_RDONLY | os.O_CLOEXEC)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    if keep_old_as is not None and path.exists():
+        os.replace(path, keep_old_as)
+    os.replace(tmp, path)
+    fd = os.open(path.parent, os.O_RDONLY | os.O_CLOEXEC)
+    try:
+        os.fsync(fd)
+    except OSError as exc:  # a file system that cannot sync a folder (EINVAL) has nothing to sync
+        if exc.errno != errno.EINVAL:
+            raise
+    finally:
+        os.close(fd)
 
 
 @contextmanager

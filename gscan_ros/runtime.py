@@ -28,9 +28,13 @@ MKL_SHIM = "libgscan_mkl_intel_cpu.so"  # built by `make setup` into the environ
 MKL_SHIM_SWITCH = "GSCAN_MKL_SHIM"  # "0": start subprocesses without the shim
 
 
+_default_threads: int | None = None  # torch's intra-op threads before the first `configure_torch`
+
+
 def configure_torch(threads: int = 0) -> None:
-    """Set intra-op threads (0 = keep torch's default), flush denormal floats to zero and
-    keep freed tensors in the heap (`keep_freed_memory`).
+    """Set intra-op threads (0 = torch's default: the count torch had before the first call,
+    so a process that set another one can go back), flush denormal floats to zero and keep
+    freed tensors in the heap (`keep_freed_memory`).
 
     A trained network's weights, activations and Adam moments drift into the denormal
     range (< 1.2e-38), where x86 float arithmetic is tens of times slower, and training
@@ -39,8 +43,10 @@ def configure_torch(threads: int = 0) -> None:
     """
     import torch
 
-    if threads:
-        torch.set_num_threads(threads)
+    global _default_threads
+    if _default_threads is None:
+        _default_threads = torch.get_num_threads()
+    torch.set_num_threads(threads or _default_threads)
     torch.set_flush_denormal(True)
     keep_freed_memory()
 

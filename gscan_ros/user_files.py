@@ -16,8 +16,9 @@ import yaml
 from gscan_ros.errors import QUOTE_CHARS, GscanError, shortened
 
 MAX_YAML_BYTES = 256 << 10
-"""Largest YAML file, and largest YAML document once its aliases are written out: configs
-and bag metadata are a few kB, the paper's plan 12 kB (PyYAML parses ~100 kB a second)."""
+"""Largest YAML file, and largest YAML document once its aliases are written out, unless
+a reader names its own bound: configs are a few kB, the paper's plan 12 kB (bag metadata,
+which grows with topics and split files, has `bag_metadata.MAX_METADATA_BYTES`)."""
 MAX_YAML_DEPTH = 32
 """Deepest nesting of a YAML document (bag metadata, the deepest we read, nests 9 levels)."""
 MAX_JSON_BYTES = 16 << 20
@@ -31,22 +32,28 @@ def read_text(path: str | os.PathLike, what: str, error: type[GscanError], limit
         with open(path, "rb") as f:
             if os.fstat(f.fileno()).st_size > limit:
                 raise error(f"{what} is larger than {limit:,} bytes")
-            data = f.read(limit + 1)  # also bounds what has no size (a pipe, /dev/zero)
+            # In pieces: also bounds what has no size (a pipe, /dev/zero), and a large bound
+            # costs no buffer of its size for a small file.
+            chunks, size = [], 0
+            while size <= limit and (chunk := f.read(1 << 16)):
+                chunks.append(chunk)
+                size += len(chunk)
     except OSError as exc:
         raise error(f"cannot read {what}: {exc.strerror}") from None
-    if len(data) > limit:
+    if size > limit:
         raise error(f"{what} is larger than {limit:,} bytes")
+    data = b"".join(chunks)
     try:
         return data.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise error(f"{what} is not UTF-8 text (byte {exc.start})") from None
 
 
-def read_yaml(path: str | os.PathLike, what: str, error: type[GscanError]):
-    """The YAML document in `path`, within MAX_YAML_BYTES and MAX_YAML_DEPTH; `error` with
+def read_yaml(path: str | os.PathLike, what: str, error: type[GscanError], limit: int = MAX_YAML_BYTES):
+    """The YAML document in `path`, within `limit` bytes and MAX_YAML_DEPTH; `error` with
     one line naming `what` when the file cannot be read, is not UTF-8 or not YAML, or
     goes beyond a bound."""
-    return parse_yaml(read_text(path, what, error, MAX_YAML_BYTES), what, error)
+    return parse_yaml(read_text(path, what, error, limit), what, error, limit)
 
 
 def read_json(path: str | os.PathLike, what: str, error: type[GscanError]):
@@ -60,10 +67,13 @@ def read_json(path: str | os.PathLike, what: str, error: type[GscanError]):
         raise error(f"{what} is not valid JSON: nested too deeply") from None
 
 
-def parse_yaml(text: str, what: str, error: type[GscanError]):
-    """The YAML document `text` (a file's, or one `--set` value), bounded as `read_yaml`'s."""
+def parse_yaml(text: str, what: str, error: type[GscanError], limit: int = MAX_YAML_BYTES):
+    """The YAML document `text` (a file's, or one `--set` value), bounded as `read_yaml`'s:
+    measured event by event (`_check_bounds`) before anything is built, then loaded as
+    plain data (a SafeLoader, libyaml's when installed: bag metadata runs to MiBs)."""
     try:
-        return yaml.load(text, Loader=_BoundedLoader)  # a SafeLoader: plain data only
+        _check_bounds(text, limit)
+        return yaml.load(text, Loader=_LOADER)
     except _Unbounded as exc:
         raise error(f"{what} {exc}") from None
     except yaml.YAMLError as exc:
@@ -73,49 +83,49 @@ def parse_yaml(text: str, what: str, error: type[GscanError]):
         raise error(f"{what} holds an unreadable value: {exc}") from None
 
 
+_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+
+
 class _Unbounded(Exception):
-    """A YAML document beyond MAX_YAML_DEPTH or MAX_YAML_BYTES (its message completes
+    """A YAML document beyond MAX_YAML_DEPTH or its size bound (its message completes
     "<what> ...")."""
 
 
-class _BoundedLoader(yaml.SafeLoader):
-    """A SafeLoader that measures each node as it is composed, before anything is built.
+def _check_bounds(text: str, limit: int) -> None:
+    """Refuse a document that nests deeper than MAX_YAML_DEPTH or, with every alias
+    written out, exceeds `limit` characters (`_Unbounded`), from its parse events alone.
 
     An alias makes a node stand for the whole node it refers to, so a 300-byte document
     ("billion laughs") can stand for gigabytes, which any consumer that walks it (an
     error message, `json.dumps`, `str`) then allocates. Refusing anchors outright would
     refuse their honest use (one `set:` block shared by the runs of a plan); instead the
-    document, with every alias written out, must stay within MAX_YAML_BYTES, the bound
-    of a file without aliases. The size of a node is counted once (composition shares
-    it), so measuring costs time linear in the file.
+    document, with every alias written out, must stay within `limit`, the bound of a file
+    without aliases. Each anchored node's size is counted once, so measuring costs time
+    linear in the file. Sizes: a scalar its text (1 when empty), a collection 1 plus its
+    children's. Syntax errors are left to the loader that follows.
     """
+    open_nodes: list[list] = []  # [written size so far, anchor] of each collection being read
+    anchors: dict[str, int] = {}
 
-    def __init__(self, stream) -> None:
-        super().__init__(stream)
-        self._depth = 0
-        self._sizes: dict[int, int] = {}  # id(node) -> characters with its aliases written out
+    def close(size: int, anchor: str | None) -> None:
+        if size > limit:
+            raise _Unbounded(f"expands beyond {limit:,} characters through its aliases")
+        if anchor is not None:
+            anchors[anchor] = size
+        if open_nodes:
+            open_nodes[-1][0] += size
 
-    def compose_node(self, parent, index):
-        if self.check_event(yaml.AliasEvent):
-            node = super().compose_node(parent, index)
-            if id(node) not in self._sizes:
-                raise _Unbounded("holds an alias inside the node it refers to (an infinite document)")
-            return node
-        if self._depth == MAX_YAML_DEPTH:
+    for event in yaml.parse(text, Loader=_LOADER):
+        if isinstance(event, (yaml.ScalarEvent, yaml.AliasEvent, yaml.CollectionStartEvent)) \
+                and len(open_nodes) == MAX_YAML_DEPTH:
             raise _Unbounded(f"nests deeper than {MAX_YAML_DEPTH} levels")
-        self._depth += 1
-        node = super().compose_node(parent, index)
-        self._depth -= 1
-        size = self._sizes[id(node)] = _written_size(node, self._sizes)
-        if size > MAX_YAML_BYTES:
-            raise _Unbounded(f"expands beyond {MAX_YAML_BYTES:,} characters through its aliases")
-        return node
-
-
-def _written_size(node: yaml.Node, sizes: dict[int, int]) -> int:
-    """Characters of `node` written out, at most its length in a file without aliases:
-    a scalar its text (1 when empty), a collection 1 plus its children's (known already)."""
-    if isinstance(node, yaml.ScalarNode):
-        return max(len(node.value), 1)
-    children = node.value if isinstance(node, yaml.SequenceNode) else [n for pair in node.value for n in pair]
-    return 1 + sum(sizes[id(child)] for child in children)
+        if isinstance(event, yaml.CollectionStartEvent):
+            open_nodes.append([1, event.anchor])
+        elif isinstance(event, yaml.CollectionEndEvent):
+            close(*open_nodes.pop())
+        elif isinstance(event, yaml.ScalarEvent):
+            close(max(len(event.value), 1), event.anchor)
+        elif isinstance(event, yaml.AliasEvent):
+            if any(anchor == event.anchor for _, anchor in open_nodes):
+                raise _Unbounded("holds an alias inside the node it refers to (an infinite document)")
+            close(anchors.get(event.anchor, 1), None)  # an undefined alias: the loader says so

@@ -16,7 +16,9 @@ from pathlib import Path
 from typing import Iterator
 
 import numpy as np
+import yaml
 from mcap.reader import make_reader
+from mcap.writer import CompressionType, Writer
 
 from gscan_ros import episode_status as es
 from gscan_ros import interface
@@ -38,6 +40,8 @@ from msg_adapters import (
     situation_to_cdr,
     text_to_cdr,
 )
+from msg_adapters.episode_status import GoalID, GoalStatus
+from msg_adapters.header import time_msg
 
 SPLITS = ("train", "test", "visual")
 TESTS = Path(__file__).parent
@@ -84,6 +88,11 @@ def make_episode(rng: random.Random, index: int, max_len: int = 20) -> Episode:
 def make_episodes(count: int, seed: int = 0, max_len: int = 20) -> list[Episode]:
     rng = random.Random(seed)
     return [make_episode(rng, i, max_len) for i in range(count)]
+
+
+def on_grid(episodes: list[Episode], grid_size: int) -> list[Episode]:
+    """The same episodes on a larger grid (their cells and routes fit any grid of 6 or more)."""
+    return [replace(e, situation=replace(e.situation, grid_size=grid_size)) for e in episodes]
 
 
 def uint8_multi_array(dims: list[tuple[str, int, int]], data: np.ndarray) -> bytes:
@@ -229,6 +238,91 @@ class LiveStack:
                           "meta": {"recorded_by": "/episode_recorder_node"}}
                 writer.write_message("/episode", interface.EPISODE.type, text_to_cdr(json.dumps(record)), log_ns + 1,
                                      publish_ns)
+
+
+# Messages no reader can read, by topic: (CDR bytes, what the reader says of them).
+BAD_MESSAGES = {
+    "action": (text_to_cdr("jump"), "unknown action 'jump'"),
+    "situation": (text_to_cdr("{not json"), "situation is not JSON"),
+    "episode": (text_to_cdr("{not json"), "/episode record is not JSON"),
+    "episode_status": (msg_to_cdr(GoalStatus(goal_id=GoalID(stamp=time_msg(0), id="?"), status=9, text="")),
+                       "episode status 9 is not one the policy sends"),
+}
+
+
+def recording_with_a_bad_message(bag: Path, topic: str, *, stray: bool = False) -> tuple[list[Episode], int]:
+    """`ros2 bag record -a` of three complete episodes on one world with one bad message on
+    `topic` (BAD_MESSAGES): in the second episode (for a situation, the newest before its
+    ACTIVE report: the one it would start from) or, `stray`, between the second and the
+    third. Returns the episodes its reader gives (all but the second, or all when `stray`)
+    and the bad message's publish time."""
+    rng = random.Random(6)
+    stack = LiveStack(make_episodes(1, seed=6)[0].situation)
+    stack.state()
+    data = BAD_MESSAGES[topic][0]
+    episodes, bad_ns = [], 0
+    for i, command in enumerate(("walk to a red circle", "walk to a blue circle", "walk to a red circle")):
+        situation, actions = stack.world.snapshot(), stack.route(rng, 4)
+        stack.command(command)
+        inside = i == 1 and not stray
+        if inside and topic == "situation":
+            stack.publish(topic, data)
+            bad_ns = stack.now
+        report = stack.start()
+        for t, action in enumerate((*actions, Action.EOS)):
+            stack.act(action)
+            if inside and t == 0 and topic != "situation":
+                stack.publish(topic, data)
+                bad_ns = stack.now
+        stack.end(report, es.COMPLETE)
+        if i == 1 and stray:
+            stack.publish(topic, data)
+            bad_ns = stack.now
+        if not inside:
+            episodes.append(Episode(command, situation, actions, split=LIVE_SPLIT, example_id=None))
+    with BagWriter(bag) as writer:
+        stack.record(writer, recorder=False)
+    return episodes, bad_ns
+
+
+# ---------------------------------------------------------- bags as `ros2 bag record` writes them
+ROSBAG2_NAME = "rosbag2_2025_01_01-00_00_00"
+
+
+def rosbag2_copy(src: Path, dst: Path, files: int) -> list[Path]:
+    """`src`'s messages as `ros2 bag record -a` stores them: split into `files` MCAP files
+    `<name>_<n>.mcap` (each with its own schemas and channels, library rosbag2) and a
+    metadata.yaml without our custom data (no episode count). Returns the files."""
+    with open(mcap_file(src), "rb") as f:
+        messages = list(make_reader(f).iter_messages(log_time_order=False))
+    dst.mkdir(parents=True)
+    per_file = -(-len(messages) // files)
+    paths, entries = [], []
+    for n in range(files):
+        part = messages[n * per_file:(n + 1) * per_file]
+        path = dst / f"{ROSBAG2_NAME}_{n}.mcap"
+        with open(path, "wb") as f:
+            writer = Writer(f, compression=CompressionType.ZSTD, chunk_size=4096)
+            writer.start(profile="ros2", library="rosbag2")
+            schemas, channels = {}, {}
+            for schema, channel, message in part:
+                if schema.id not in schemas:
+                    schemas[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
+                if channel.id not in channels:
+                    channels[channel.id] = writer.register_channel(channel.topic, channel.message_encoding,
+                                                                   schemas[schema.id], channel.metadata)
+                writer.add_message(channels[channel.id], message.log_time, message.data, message.publish_time,
+                                   message.sequence)
+            writer.finish()
+        paths.append(path)
+        entries.append({"path": path.name, "starting_time": {"nanoseconds_since_epoch": part[0][2].log_time},
+                        "duration": {"nanoseconds": part[-1][2].log_time - part[0][2].log_time},
+                        "message_count": len(part)})
+    metadata = yaml.safe_load((src / "metadata.yaml").read_text())
+    info = metadata["rosbag2_bagfile_information"]
+    info.update(relative_file_paths=[p.name for p in paths], files=entries, custom_data=None)
+    (dst / "metadata.yaml").write_text(yaml.safe_dump(metadata, sort_keys=False))
+    return paths
 
 
 # ------------------------------------------------------------------------ damaged bags

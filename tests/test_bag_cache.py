@@ -11,8 +11,9 @@ import pytest
 from gscan_ros.data import bag_cache
 from gscan_ros.data.bag import BagWriter, repair_bag, write_bag
 from gscan_ros.data.bag_cache import cache_path, load_episode_cache
+from gscan_ros.errors import DatasetFormatError
 
-from bag_support import data_end, make_episodes, mcap_file, truncated_copy
+from bag_support import data_end, make_episodes, mcap_file, on_grid, truncated_copy
 
 
 @pytest.fixture
@@ -177,3 +178,11 @@ def test_complete_and_repaired_bags_load_without_warnings(bag, truncated_bag, tm
             for _ in range(2):
                 assert load_episode_cache(path).complete
     assert caplog.text == ""
+
+
+def test_a_bag_on_two_grid_sizes_is_refused_naming_them(tmp_path):
+    """Training stacks a bag's states into one array of one grid size: refused at load, in one line."""
+    write_bag(tmp_path / "bag", make_episodes(3, seed=1) + on_grid(make_episodes(2, seed=2), 8))
+    with pytest.raises(DatasetFormatError, match=r"bag: episodes on 2 grid sizes \(3 on 6x6, 2 on 8x8\)"):
+        load_episode_cache(tmp_path / "bag")
+    assert not cache_path(tmp_path / "bag").exists()

@@ -10,12 +10,11 @@ from mcap.reader import make_reader
 from gscan_ros import episode_status as es
 from gscan_ros.data.bag import LIVE_SPLIT, BagEpisodeReader, BagWriter, iter_bag_episodes, read_bag_info, write_bag
 from gscan_ros.data.episode import Episode
-from gscan_ros.errors import DatasetFormatError
 from gscan_ros.language import get_parser
 from gscan_ros.world.types import Action
-from msg_adapters import text_to_cdr
+from msg_adapters import reset_to_cdr, text_to_cdr
 
-from bag_support import LiveStack, make_episodes, mcap_file
+from bag_support import BAD_MESSAGES, LiveStack, make_episodes, mcap_file, recording_with_a_bad_message
 
 PARSER = get_parser("semantic")
 
@@ -136,6 +135,29 @@ def test_cut_and_preempted_episodes_are_skipped_and_counted(outcomes):
     assert list(BagEpisodeReader(bag, splits=["train"], include_incomplete=True).records()) == []
 
 
+def test_a_recording_begun_mid_episode_reads_complete(tmp_path):
+    """`ros2 bag record -a` started while an episode runs: its tail and end report are the
+    bag's prologue, not lost data; the next episode starts where that tail left the world."""
+    rng = random.Random(4)
+    stack = LiveStack(make_episodes(1, seed=4)[0].situation)
+    stack.state()
+    stack.command("walk to a red circle", PARSER.parse("walk to a red circle"))
+    running = es.EpisodeStatus("/policy_node/1", stack.now, es.ACTIVE, "")  # published before the recording
+    stack.episodes = 1
+    for action in stack.route(rng, 3):
+        stack.act(action)
+    stack.end(running, es.PREEMPTED)
+    situation, actions = stack.world.snapshot(), stack.route(rng, 4)
+    stack.command("walk to a blue circle", PARSER.parse("walk to a blue circle"))
+    stack.episode(actions)
+    bag = tmp_path / "late"
+    with BagWriter(bag) as writer:
+        stack.record(writer, recorder=False)
+    reader = BagEpisodeReader(bag, include_incomplete=True)
+    assert [r.episode for r in reader.records()] == [_live("walk to a blue circle", situation, actions)]
+    assert reader.report.complete and reader.report.drop_reasons == {} and reader.report.incomplete_episodes == 0
+
+
 def test_preempted_episodes_last_action_logged_late_stays_in_it(tmp_path):
     """The policy publishes its last action, then PREEMPTED when a new command comes, then
     ACTIVE; the recorder gets that action only after the next ACTIVE."""
@@ -189,13 +211,14 @@ def test_missed_situations_and_observations_are_replayed(tmp_path):
     assert reader.report.complete
 
 
-def test_a_namespaced_recording_reads(tmp_path):
-    """`ros2 bag record -a` of a stack in namespace /robot1 (no `/episode` records); a second
-    stack's topics in the bag are not read into its episodes."""
+def test_every_stack_of_a_recording_reads_on_its_own(tmp_path):
+    """`ros2 bag record -a` of a fleet: stacks in namespaces /robot1 and /robot2 (no `/episode`
+    records), their messages interleaved. Each is read on its own: neither's messages go
+    into the other's episodes, and neither hides the other."""
     rng = random.Random(9)
     first, other = make_episodes(2, seed=9)
-    robot1 = LiveStack(first.situation, namespace="/robot1")
-    robot2 = LiveStack(other.situation, namespace="/robot2", t0_ns=robot1.now + 500)
+    robot1 = LiveStack(first.situation, namespace="/robot1", policy="/robot1/policy_node")
+    robot2 = LiveStack(other.situation, namespace="/robot2", policy="/robot2/policy_node", t0_ns=robot1.now + 500)
     expected = []
     for stack, command in ((robot1, "walk to a red circle"), (robot2, "walk to a blue circle")):
         stack.state()
@@ -208,17 +231,58 @@ def test_a_namespaced_recording_reads(tmp_path):
     assert {t.split("/")[1] for t in read_bag_info(bag).topics} == {"robot1", "robot2"}
 
     reader = iter_bag_episodes(bag)
-    back = list(reader)
-    assert back == expected[:1] and back[0].meta["episode_id"] == "/policy_node/1"
+    back = sorted(reader, key=lambda e: e.command)
+    assert back == sorted(expected, key=lambda e: e.command)
+    assert [e.meta["episode_id"] for e in back] == ["/robot2/policy_node/1", "/robot1/policy_node/1"]
+    assert reader.report.complete and reader.report.episodes_read == 2
+
+
+def test_another_nodes_topic_of_a_stack_topics_name_is_context(tmp_path):
+    """A battery node's `/battery/status` (a std_msgs/String, as the stack's `/status`) is the
+    bag's first message, and `/camera/observation` has a stack topic's name but another
+    type: neither is taken for a stack, and the stack at the root reads whole."""
+    rng = random.Random(2)
+    stack = LiveStack(make_episodes(1, seed=2)[0].situation)
+    start = stack.now
+    stack.state()
+    expected = []
+    for command in ("walk to a red circle", "walk to a blue circle"):
+        situation, actions = stack.world.snapshot(), stack.route(rng, 5)
+        stack.command(command, PARSER.parse(command))
+        stack.episode(actions)
+        expected.append(_live(command, situation, actions))
+    stack.messages += [("/battery/status", "std_msgs/msg/String", text_to_cdr("battery ok"), start - 1000, 0),
+                       ("/camera/observation", "std_msgs/msg/Header", reset_to_cdr(start), start + 1, 0)]
+    bag = _record(stack, tmp_path / "battery", recorder=False)
+    assert _file_order(bag)[0] == ("/battery/status", start - 1000)
+
+    reader = iter_bag_episodes(bag)
+    assert list(reader) == expected
     assert reader.report.complete
 
 
-def test_unknown_action_token_names_bag_topic_and_time(tmp_path):
-    stack = LiveStack(make_episodes(1)[0].situation)
-    stack.state()
-    stack.command("walk to a red circle")
-    stack.start()
-    stack.publish("action", text_to_cdr("jump"))
-    bag = _record(stack, tmp_path / "tok")
-    with pytest.raises(DatasetFormatError, match=rf"^{bag}: action at {stack.now} ns: unknown action 'jump'"):
-        list(iter_bag_episodes(bag))
+@pytest.mark.parametrize("topic", sorted(BAD_MESSAGES))
+def test_a_bad_message_costs_its_episode_not_the_bag(tmp_path, topic):
+    """A bad `/action` token, a `/situation` or `/episode` that is not JSON, an `/episode_status`
+    code the policy never sends: the episode it belongs to is dropped and the report names
+    the reason and the message; the episodes around it read."""
+    bag = tmp_path / "bad"
+    expected, bad_ns = recording_with_a_bad_message(bag, topic)
+    reader = iter_bag_episodes(bag)
+    assert list(reader) == expected and len(expected) == 2
+    report = reader.report
+    assert report.drop_reasons == {f"a bad /{topic} message": 1} and report.incomplete_episodes == 1
+    assert report.bad_messages == 1
+    assert report.first_bad_message.startswith(f"/{topic} at {bad_ns} ns: {BAD_MESSAGES[topic][1]}")
+    assert not report.complete and f"a bad /{topic} message" in report.summary()
+
+
+@pytest.mark.parametrize("topic", ["action", "episode_status"])
+def test_a_stray_bad_message_between_episodes_is_lost_alone(tmp_path, topic):
+    bag = tmp_path / "stray"
+    expected, _ = recording_with_a_bad_message(bag, topic, stray=True)
+    reader = iter_bag_episodes(bag)
+    assert list(reader) == expected and len(expected) == 3
+    report = reader.report
+    assert report.bad_messages == 1 and report.incomplete_episodes == 0
+    assert report.lost_episodes == 0 and report.lost_messages == 1 and not report.complete

@@ -2,9 +2,11 @@
 the episodes of the damaged chunks, a file that is not MCAP is one clear error."""
 import io
 import logging
+import shutil
 from pathlib import Path
 
 import pytest
+import yaml
 from mcap.reader import make_reader
 from mcap.records import Message
 from mcap.stream_reader import StreamReader, breakup_chunk
@@ -21,6 +23,7 @@ from bag_support import (
     mcap_file,
     message_lost,
     messages_of,
+    rosbag2_copy,
     truncated_copy,
     write_message_chunks,
 )
@@ -170,7 +173,7 @@ def test_cut_inside_the_first_chunk_is_truncated_not_corrupt(episodes, tmp_path)
     report = reader.report
     assert report.truncated and not report.corrupt and report.lost_chunks == 1
     assert report.lost_episodes == len(episodes)
-    assert report.summary().startswith(f"{bag}: truncated: recovered 0 of {len(episodes)}")
+    assert report.summary().startswith(f"{bag}: truncated: recovered 0 complete episodes (of {len(episodes)} recorded)")
 
 
 def test_killed_writer_with_a_damaged_first_chunk_recovers_the_rest(tmp_path):
@@ -218,13 +221,13 @@ def test_an_episode_cut_by_lost_data_counts_once(message_chunks, episodes, tmp_p
     reader = iter_bag_episodes(bag)
     assert list(reader) == [e for i, e in enumerate(episodes[:6]) if i != 3]
     report = reader.report
-    assert not report.exact and report.drop_reasons == {"cut by lost data": 1}
+    assert not report.messages_exact and report.drop_reasons == {"cut by lost data": 1}
     assert report.incomplete_episodes == report.lost_episodes == 1
     assert report.lost_messages == messages_of(episodes[3])
     assert "lost at least 1 episodes" in report.summary()
 
 
-@pytest.mark.parametrize("content", [b"", b"not an mcap file at all\n" * 10, b"\x89MCAP0\r\n" + bytes(3)])
+@pytest.mark.parametrize("content", [b"not an mcap file at all\n" * 10, b"\x89MCAP0\r\n" + bytes(3)])
 def test_not_an_mcap_file(small_chunk_bag, tmp_path, content):
     bag = truncated_copy(small_chunk_bag, tmp_path / "junk", 0)
     (bag / "junk_0.mcap").write_bytes(content)
@@ -249,3 +252,68 @@ def test_metadata_problems_name_the_file(small_chunk_bag, tmp_path):
     (bag / "metadata.yaml").write_text(text.replace("storage_identifier: mcap", "storage_identifier: sqlite3"))
     with pytest.raises(DatasetFormatError, match="storage 'sqlite3' is not supported"):
         read_bag_info(bag)
+
+
+@pytest.fixture(scope="module")
+def rosbag2_bag(tmp_path_factory, small_chunk_bag):
+    """`small_chunk_bag` as `ros2 bag record` splits it: three files, no episode count."""
+    bag = tmp_path_factory.mktemp("rosbag2") / "bag"
+    rosbag2_copy(small_chunk_bag, bag, 3)
+    return bag
+
+
+@pytest.mark.parametrize("keep", [0, 5], ids=["empty", "5 bytes"])
+def test_an_empty_last_file_is_truncated_like_a_torn_one(rosbag2_bag, episodes, tmp_path, keep):
+    """The recorder split to a new file and died: nothing is recovered from it, the rest is."""
+    bag = tmp_path / "bag"
+    shutil.copytree(rosbag2_bag, bag)
+    last = sorted(bag.glob("*.mcap"))[-1]
+    last.write_bytes(last.read_bytes()[:keep])
+    reader = iter_bag_episodes(bag)
+    recovered = list(reader)
+    assert recovered == episodes[: len(recovered)] and len(recovered) > len(episodes) // 2
+    assert reader.report.truncated_files == [last] and reader.report.lost_messages > 0
+
+
+def test_a_folder_of_mcap_files_without_metadata_reads_with_a_warning(rosbag2_bag, episodes, tmp_path, caplog):
+    """A killed `ros2 bag record` never wrote metadata.yaml: its files are read in name order."""
+    bag = tmp_path / "bag"
+    shutil.copytree(rosbag2_bag, bag)
+    (bag / "metadata.yaml").unlink()
+    with caplog.at_level(logging.WARNING, logger="gscan_ros.data.bag"):
+        reader = iter_bag_episodes(bag)
+        assert list(reader) == episodes
+    assert "no metadata.yaml" in caplog.text and "3 .mcap file(s) in name order" in caplog.text
+    assert not reader.info.closed and not reader.report.messages_exact
+
+
+def test_mcap_files_metadata_does_not_list_are_read_with_a_warning(rosbag2_bag, episodes, tmp_path, caplog):
+    bag = tmp_path / "bag"
+    shutil.copytree(rosbag2_bag, bag)
+    metadata = yaml.safe_load((bag / "metadata.yaml").read_text())
+    info = metadata["rosbag2_bagfile_information"]
+    unlisted = info["relative_file_paths"].pop()
+    (bag / "metadata.yaml").write_text(yaml.safe_dump(metadata))
+    with caplog.at_level(logging.WARNING, logger="gscan_ros.data.bag"):
+        reader = iter_bag_episodes(bag)
+        assert list(reader) == episodes
+    assert f"does not list 1 .mcap file(s) of the folder ({unlisted})" in caplog.text
+    assert not reader.info.closed  # metadata.yaml's counts leave the file out
+
+
+@pytest.mark.parametrize("key, value", [("gscan_ros.episodes", "many"), ("gscan_ros.splits", "'{bad'"),
+                                        ("gscan_ros.splits", "'[1, 2]'")])
+def test_malformed_custom_data_is_ignored_with_a_warning(small_chunk_bag, episodes, tmp_path, caplog, key, value):
+    """Our counts in custom_data are advisory: a bad one costs the count, not the bag."""
+    bag = copy_bag(small_chunk_bag, tmp_path / "bag", mcap_file(small_chunk_bag).read_bytes())
+    metadata = bag / "metadata.yaml"
+    text = metadata.read_text()
+    start = text.index(f"    {key}:")
+    metadata.write_text(text[:start] + f"    {key}: {value}\n" + text[text.index("\n", start) + 1:])
+    info = read_bag_info(bag)
+    assert key not in info.custom and (info.episodes is None if key == "gscan_ros.episodes" else info.splits == {})
+    with caplog.at_level(logging.WARNING, logger="gscan_ros.data.bag"):
+        assert list(iter_bag_episodes(bag)) == episodes
+    assert f"custom_data {key} is not" in caplog.text and "ignoring it" in caplog.text
+    metadata.write_text(text.replace("  custom_data:\n", "  custom_data: [1, 2]\n  ignored:\n"))
+    assert read_bag_info(bag).custom == {} and "custom_data is not a map" in read_bag_info(bag).warnings[0]

@@ -1,6 +1,7 @@
 """`repair_bag` / `gscan-ros bag repair`: a damaged or unfinished bag becomes a complete, indexed
 bag that third-party readers open, holding exactly what the recovering reader gets out of it."""
 import json
+import logging
 import random
 from collections import Counter
 
@@ -10,6 +11,7 @@ from mcap.reader import make_reader
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 
+from gscan_ros import episode_status as es
 from gscan_ros import interface
 from gscan_ros.cli import main
 from gscan_ros.data.bag import EPISODE_PERIOD_NS, STEP_NS, BagWriter, iter_bag_episodes, read_bag_info, repair_bag
@@ -19,6 +21,8 @@ from gscan_ros.errors import DatasetFormatError
 from msg_adapters import text_to_cdr
 
 from bag_support import (
+    BAD_MESSAGES,
+    LiveStack,
     copy_bag,
     damaged_copy,
     data_end,
@@ -27,6 +31,8 @@ from bag_support import (
     mcap_file,
     message_lost,
     messages_of,
+    recording_with_a_bad_message,
+    rosbag2_copy,
     truncated_copy,
     write_message_chunks,
 )
@@ -153,25 +159,16 @@ def test_repair_keeps_channels_times_and_other_topics(kind, intact, tmp_path):
     kept = {e.example_id for e in iter_bag_episodes(source)}
     result = repair_bag(source, tmp_path / "repaired")
     original = _messages(intact)
-    # Stack messages, bytes and times unchanged: those of the recovered episodes, and the
-    # readable prologues (what precedes an ACTIVE report) of the others; no piece of an
-    # episode from its ACTIVE report on, the tail after the damage included.
-    active = {}
-    for topic, t, *_ in original:
-        if topic == "/episode_status":
-            active.setdefault(t // S, t)
-    readable = [m for m in _readable(source) if m[0] != "/status"]
-    expected = [m for m in readable if m[1] // S in kept or m[1] < active[m[1] // S]]
-    repaired = _messages(tmp_path / "repaired")
-    assert [m for m in repaired if m[0] != "/status"] == expected
+    # Every readable message, bytes and times unchanged, but the `/episode_status` reports of
+    # the episodes the reader dropped: what is left of those is the world's history, never
+    # an episode (no piece of one is joined to another across the damage).
+    readable = _readable(source)
+    expected = [m for m in readable if m[0] != "/episode_status" or m[1] // S in kept]
+    assert _messages(tmp_path / "repaired") == expected
     assert result.dropped_messages == len(readable) - len(expected)
     if kind == "flipped byte":
-        assert result.dropped_messages > 0  # the tail of the episode the damage cut
-    # Other topics are copied whenever their chunk is intact, including after the damage.
-    status = [m for m in repaired if m[0] == "/status"]
-    assert status and set(status) <= set(original)
-    if kind == "flipped byte":
-        assert status[-1] == original[-1]  # the last message of the bag, well after the damage
+        assert result.dropped_messages > 0  # the reports of the episode the damage cut
+        assert expected[-1] == original[-1]  # other topics after the damage: the bag's last message
     with open(mcap_file(intact), "rb") as f:
         channels = {c.topic: (c.message_encoding, c.metadata) for c in make_reader(f).get_summary().channels.values()}
         schemas = {s.name: s.data for s in make_reader(f).get_summary().schemas.values()}
@@ -269,20 +266,97 @@ def message_chunks(tmp_path_factory, episodes):
     return write_message_chunks(tmp_path_factory.mktemp("messages") / "bag", episodes[:5])
 
 
-@pytest.mark.parametrize("lost, prologue", [
-    (2 * S, ["/situation", "/observation", "/command"]),  # episode 2's `/episode` record
-    (2 * S + 2 * STEP_NS, ["/episode", "/situation", "/observation", "/command"]),  # its second action
-], ids=["record", "action"])
-def test_repair_leaves_out_the_episode_damage_cut(message_chunks, episodes, tmp_path, lost, prologue):
-    """Of the episode the damage cut, only its readable prologue is copied: no piece from its
-    ACTIVE report on (its tail after the damage included), and the repaired bag reads whole."""
+@pytest.mark.parametrize("lost", [2 * S, 2 * S + 2 * STEP_NS], ids=["record", "action"])
+def test_repair_leaves_out_the_reports_of_the_episode_damage_cut(message_chunks, episodes, tmp_path, lost):
+    """Damage takes episode 2's `/episode` record, or its second action: of that episode, all
+    that is readable is copied but its two `/episode_status` reports, and the repaired bag
+    reads whole, as the same episodes."""
     assert len(episodes[2].actions) >= 2
     source = message_lost(message_chunks, tmp_path / "damaged", lost)
     recovered = list(iter_bag_episodes(source))
     assert recovered == [e for i, e in enumerate(episodes[:5]) if i != 2]
     result = repair_bag(source, tmp_path / "repaired")
-    assert [m[0] for m in _messages(tmp_path / "repaired") if m[1] // S == 2] == prologue
-    assert result.dropped_messages == messages_of(episodes[2]) - 1 - len(prologue)
+    topics = [m[0] for m in _messages(tmp_path / "repaired") if m[1] // S == 2]
+    assert len(topics) == messages_of(episodes[2]) - 1 - 2 and "/episode_status" not in topics
+    assert result.dropped_messages == 2
     again = iter_bag_episodes(tmp_path / "repaired")
     assert list(again) == recovered and again.report.complete
     assert result.source.lost_episodes == 1 and result.source.incomplete_episodes == 1
+
+
+@pytest.mark.parametrize("topic", sorted(BAD_MESSAGES))
+def test_repair_leaves_out_a_bad_message_and_its_episode(tmp_path, topic, capsys):
+    """The bad message and the reports of the episode it belongs to are left out and
+    reported lost, with the counts `verify` gives: the repaired bag verifies."""
+    source = tmp_path / "bad"
+    expected, _ = recording_with_a_bad_message(source, topic)
+    reader = iter_bag_episodes(source)
+    assert list(reader) == expected
+    assert main(["verify", str(source), "--quiet"]) == 1
+    assert f" episodes / {reader.report.lost_messages} messages" in capsys.readouterr().err
+
+    result = repair_bag(source, tmp_path / "repaired")
+    assert result.source.lost_messages == reader.report.lost_messages
+    assert result.source.drop_reasons == reader.report.drop_reasons == {f"a bad /{topic} message": 1}
+    assert result.dropped_messages == 3  # the bad message and the two reports
+    again = iter_bag_episodes(tmp_path / "repaired")
+    assert list(again) == expected and again.report.complete
+    assert main(["verify", str(tmp_path / "repaired"), "--quiet"]) == 0
+
+
+def test_cli_bag_repair_counts_each_outcome(tmp_path, capsys):
+    """Cut and preempted episodes are kept, and counted as what they are."""
+    rng = random.Random(4)
+    stack = LiveStack(make_episodes(1, seed=4)[0].situation)
+    stack.state()
+    for outcome in (es.COMPLETE, es.CUT, es.PREEMPTED, es.COMPLETE):
+        stack.command("walk to a red circle")
+        stack.episode(stack.route(rng, 3), outcome)
+    with BagWriter(tmp_path / "live") as writer:
+        stack.record(writer)
+    assert main(["bag", "repair", str(tmp_path / "live"), "--out", str(tmp_path / "new")]) == 0
+    out = capsys.readouterr().out
+    assert "kept: 2 complete episodes (and 1 cut, 1 preempted: no demonstrations)," in out
+    info = read_bag_info(tmp_path / "new")
+    assert info.episodes == 4 and info.splits == {"live": 2}
+
+
+def test_repair_and_verify_agree_on_a_ros2_bag_record_bag(intact, tmp_path, capsys):
+    """A bag of `ros2 bag record` (no episode count), its last file torn: both say the same
+    loss, a lower bound for episodes; the repair's line ends without empty parentheses."""
+    files = rosbag2_copy(intact, tmp_path / "rosbag2", 3)
+    files[-1].write_bytes(files[-1].read_bytes()[:500])
+    assert main(["verify", str(tmp_path / "rosbag2"), "--quiet"]) == 1
+    err = capsys.readouterr().err
+    lost = err[err.index("lost at least"):].split(" (")[0]
+    assert lost.startswith("lost at least ") and " episodes / " in lost and "at least" not in lost.split("/")[1]
+    assert main(["bag", "repair", str(tmp_path / "rosbag2"), "--out", str(tmp_path / "new")]) == 0
+    line = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("lost:"))
+    assert line.startswith(f"lost: {lost[len('lost '):]}") and not line.endswith("()")
+
+
+def test_repair_of_a_folder_without_metadata_writes_one(intact, tmp_path, caplog):
+    """A killed `ros2 bag record` leaves only its .mcap files: they are read in order (`_10`
+    after `_9`), with a warning, and the repaired bag has a metadata.yaml."""
+    files = rosbag2_copy(intact, tmp_path / "killed", 11)
+    (tmp_path / "killed" / "metadata.yaml").unlink()
+    with caplog.at_level(logging.WARNING, logger="gscan_ros.data.bag"):
+        result = repair_bag(tmp_path / "killed", tmp_path / "new")
+    assert "no metadata.yaml" in caplog.text and "bag repair" in caplog.text
+    assert [p.name for p in read_bag_info(tmp_path / "killed").mcap_paths] == [p.name for p in files]
+    assert list(iter_bag_episodes(tmp_path / "new")) == list(iter_bag_episodes(intact))
+    assert result.info.closed and result.info.message_count == read_bag_info(intact).message_count
+
+
+def test_repair_overwrite_never_deletes_a_folder_that_holds_more_than_a_bag(intact, tmp_path, capsys):
+    """A metadata.yaml among a user's files does not make the folder a bag to replace."""
+    out = tmp_path / "work"
+    (out / "figures").mkdir(parents=True)
+    (out / "metadata.yaml").write_text("rosbag2_bagfile_information: {}\n")
+    (out / "thesis.tex").write_text("years of work")
+    (out / "figures" / "plot.png").write_bytes(b"png")
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    assert main(["bag", "repair", str(intact), "--out", str(out), "--overwrite"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "not a bag (holds figures, thesis.tex)" in err[0]
+    assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before

@@ -58,11 +58,29 @@ def test_replay_errors_are_one_line(replay_env, tmp_path, capsys):
     bag, _, _ = replay_env
     assert main(["replay", str(bag), "--splits", "dev"]) == 1  # a split the bag has none of (or a typo) is named
     assert "no examples in split(s) dev of" in capsys.readouterr().err
-    assert main(["replay", str(tmp_path / "missing")]) == 1
+    with pytest.raises(SystemExit) as exit_info:
+        main(["replay", str(tmp_path / "missing")])
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "no metadata.yaml" in err
+    assert exit_info.value.code == 1 and err.count("\n") == 1 and "missing' does not exist" in err
+    (tmp_path / "empty").mkdir()
+    assert main(["replay", str(tmp_path / "empty")]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "not a rosbag2 bag" in err and "per-split bags" in err
     with pytest.raises(SystemExit):
         main(["replay", str(bag), "--max-episodes", "0"])
+
+
+def test_replay_reads_a_folder_of_per_split_bags(replay_env, tmp_path, capsys):
+    """As `generate --format mcap` writes them: the bags of --splits, or all of them."""
+    _, episodes, calls = replay_env
+    for split in ("train", "visual"):
+        write_bag(tmp_path / "splits" / split, [e for e in episodes if e.split == split])
+    assert main(["replay", str(tmp_path / "splits")]) == 0
+    assert sorted(e.example_id for e in calls["episodes"]) == [e.example_id for e in episodes
+                                                                if e.split in ("train", "visual")]
+    assert main(["replay", str(tmp_path / "splits"), "--splits", "visual"]) == 0
+    assert calls["episodes"] == [e for e in episodes if e.split == "visual"]
+    assert "exact match: 0.00%" in capsys.readouterr().out
 
 
 def test_replay_end_to_end_with_a_real_checkpoint(tmp_path, capsys):

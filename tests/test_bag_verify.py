@@ -3,11 +3,11 @@ with one line per bag unless `--allow-partial`; an intact bag passes."""
 import pytest
 
 from gscan_ros.cli import main
-from gscan_ros.data.bag import BagWriter, repair_bag
+from gscan_ros.data.bag import BagWriter, repair_bag, write_bag
 from gscan_ros.data.generate import GenerationConfig, generate_dataset
 from gscan_ros.data.io import iter_episodes
 
-from bag_support import damaged_copy, data_end, make_episodes, truncated_copy
+from bag_support import damaged_copy, data_end, make_episodes, on_grid, truncated_copy
 
 
 @pytest.fixture(scope="module")
@@ -51,7 +51,7 @@ def test_truncated_bag_fails_unless_partial_is_allowed(bags, tmp_path, capsys):
     assert code == 1
     assert "0 mismatch(es)" in out  # what could be read is right; the loss alone fails
     assert len(err) == 1 and err[0].startswith("gscan-ros verify: error: lost data:")
-    assert "truncated" in err[0] and f"of {len(episodes)} complete episodes" in err[0]
+    assert "truncated" in err[0] and f"complete episodes (of {len(episodes)} recorded)" in err[0]
     assert "--allow-partial" in err[0]
     code, out, err = _verify(capsys, bag, "--allow-partial")
     assert code == 0
@@ -109,3 +109,27 @@ def test_limit_judges_the_part_read(bags, tmp_path, capsys):
     assert code == 0 and "verified 3 examples" in out  # the tear lies beyond what was read
     code, out, err = _verify(capsys, bag, "--limit", "10000")
     assert code == 1 and "truncated" in err[0]
+
+
+def test_a_bag_without_episodes_fails(tmp_path, capsys):
+    with BagWriter(tmp_path / "empty"):
+        pass
+    code, out, err = _verify(capsys, tmp_path / "empty")
+    assert code == 1 and out == "" and len(err) == 1
+    assert err[0].startswith(f"gscan-ros verify: error: {tmp_path / 'empty'}: no episodes found (")
+
+
+def test_a_folder_without_a_dataset_says_what_was_looked_for(tmp_path, capsys):
+    (tmp_path / "notes.txt").write_text("mine")
+    code, _, err = _verify(capsys, tmp_path)
+    assert code == 1 and len(err) == 1
+    assert "no dataset here (looked for dataset.txt, a rosbag2 bag: metadata.yaml or .mcap files" in err[0]
+
+
+def test_a_bag_on_two_grid_sizes_fails(tmp_path, capsys):
+    """What `train` refuses, verify reports: one line naming the sizes found."""
+    write_bag(tmp_path / "mixed", make_episodes(3, seed=1) + on_grid(make_episodes(2, seed=2), 8))
+    code, _, err = _verify(capsys, tmp_path / "mixed", "--show", "0")
+    assert code == 1
+    assert err[-1] == (f"gscan-ros verify: error: {tmp_path / 'mixed'}: episodes on 2 grid sizes "
+                       "(3 on 6x6, 2 on 8x8); a dataset has one (`train` refuses it)")

@@ -113,7 +113,7 @@ BAD_ARGUMENTS = [
     ("explain --out {png}", "--overwrite"),
     ("explain --out {tmp}/a.png --device gpu", "--device"),
     # replay
-    ("replay {missing}", "metadata.yaml"),
+    ("replay {missing}", "does not exist"),
     ("replay {data} --max-episodes 0", "--max-episodes"),
     ("replay {data} --batch-size 0", "--batch-size"),
     ("replay {data} --checkpoint {missing}", "--checkpoint"),

@@ -226,6 +226,28 @@ def test_generate_refuses_an_existing_dataset_without_overwrite(tmp_path, capsys
         assert _files(tmp_path) == before
 
 
+def test_generate_into_a_bag_is_refused_and_overwrite_replaces_the_bag(tmp_path, capsys):
+    """A folder that is a bag reads as that bag, whatever else it holds: writing a dataset
+    beside the bag's files would give a dataset no command reads."""
+    from gscan_ros.data.bag import write_bag
+    from gscan_ros.data.io import iter_episodes
+
+    from bag_support import make_episodes
+
+    write_bag(tmp_path / "rec", make_episodes(3))
+    (tmp_path / "rec" / "notes.txt").write_text("mine")
+    before = _files(tmp_path / "rec")
+    for fmt in ("txt", "mcap"):
+        assert _generate(tmp_path / "rec", "--format", fmt) == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "already holds a dataset (a rosbag2 bag)" in err[0] and "--overwrite" in err[0]
+        assert _files(tmp_path / "rec") == before
+    assert _generate(tmp_path / "rec", "--overwrite") == 0
+    assert sorted(p.name for p in (tmp_path / "rec").iterdir()) == ["dataset.txt", "notes.txt"]
+    written = sum(1 for _ in iter_raw_examples(tmp_path / "rec" / "dataset.txt"))
+    assert written and len(list(iter_episodes(tmp_path / "rec"))) == written  # the dataset, not the bag
+
+
 def test_generate_overwrite_mcap_leaves_no_stale_split(tmp_path):
     """A split that gets no examples this time must not keep the old run's bag."""
     from gscan_ros.data.io import split_bags

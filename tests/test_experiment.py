@@ -6,6 +6,8 @@ import os
 import re
 import socket
 import subprocess
+import sys
+import threading
 from dataclasses import replace
 from pathlib import Path
 
@@ -16,10 +18,18 @@ from gscan_ros.cli import main
 from gscan_ros.cli.args import available_cpus
 from gscan_ros.data.dataset import read_header
 from gscan_ros.data.io import DATASET_MANIFEST
+from gscan_ros.experiments.locks import FileLock
 from gscan_ros.experiments.paper_figures import TABLE1, TABLE2
 from gscan_ros.experiments.plan import DataRecipe, PlanError, load_plan, resolve_config
 from gscan_ros.experiments.runner import Runner, augment_base
-from gscan_ros.experiments.state import RunState, config_changes, seconds_per_update, training_left, work_order
+from gscan_ros.experiments.state import (
+    RunState,
+    config_changes,
+    run_state,
+    seconds_per_update,
+    training_left,
+    work_order,
+)
 from gscan_ros.outputs import PARTIAL
 from gscan_ros.runtime import MKL_SHIM, mkl_shim_env
 from gscan_ros.training.failures import FAILURE_KINDS
@@ -84,6 +94,7 @@ def test_runner_generates_trains_and_evaluates_every_run(trained):
     # the trainings started as mkl_shim_env says (on AMD CPUs with the shim built: preloaded)
     start = json.loads((root / "results/semantic_s0/metrics.jsonl").read_text().splitlines()[0])
     assert start["event"] == "start" and start["mkl_shim"] == (MKL_SHIM in mkl_shim_env().get("LD_PRELOAD", ""))
+    assert start["data"] == str(data)  # the folder it trained on, for the runner to compare with the plan's
 
 
 @pytest.mark.slow
@@ -240,6 +251,89 @@ def test_a_live_lock_means_running_and_a_dead_one_is_stale(tmp_path, capsys):
     assert experiment(plan, "--dry-run") == 0
     out = capsys.readouterr().out
     assert re.search(rf"running\s+semantic_s0 .*pid {os.getpid()}", out) and re.search(r"new\s+state_s0", out)
+
+
+def test_two_runners_never_both_take_a_stale_lock(tmp_path, monkeypatch):
+    """Taking over a dead holder's lock happens under the flock: a second runner that finds
+    the same stale lock between the first one's check and its taking it is refused."""
+    gone = subprocess.Popen(["true"])
+    gone.wait()
+    path = tmp_path / ".lock"
+    path.write_text(json.dumps({"host": socket.gethostname(), "pid": gone.pid, "child": None}))
+    first, second, taken = FileLock(path), FileLock(path), []
+    holder = FileLock.holder
+
+    def second_runner_meanwhile(lock):
+        found = holder(lock)
+        if lock is first and not taken:
+            runner = threading.Thread(target=lambda: taken.append(second.acquire()))
+            runner.start()
+            runner.join()
+        return found
+
+    monkeypatch.setattr(FileLock, "holder", second_runner_meanwhile)
+    assert [first.acquire(), *taken] == [True, False]
+    assert json.loads(path.read_text())["pid"] == os.getpid()
+    first.release()
+    assert not path.exists() and second.acquire()
+    second.release()
+
+
+def test_a_killed_holders_lock_is_free_and_an_older_runners_record_holds(tmp_path):
+    """The kernel drops a killed holder's flock; a record that names a live process, as
+    runners before the flock wrote it (and as a runner's training child outliving it leaves
+    it), still holds the lock."""
+    path = tmp_path / ".lock"
+    hold = ("import time\nfrom gscan_ros.experiments.locks import FileLock\n"
+            f"assert FileLock({str(path)!r}).acquire()\nprint(flush=True)\ntime.sleep(60)")
+    holder = subprocess.Popen([sys.executable, "-c", hold], stdout=subprocess.PIPE, text=True)
+    holder.stdout.readline()
+    assert not FileLock(path).acquire() and FileLock(path).holder()["pid"] == holder.pid
+    holder.kill()
+    holder.wait()
+    lock = FileLock(path)
+    assert lock.acquire()
+    lock.release()
+    path.write_text(json.dumps({"host": socket.gethostname(), "pid": os.getpid(), "started": None, "child": None}))
+    assert not FileLock(path).acquire() and path.exists()
+
+
+def test_a_run_whose_last_checkpoint_was_lost_in_its_save_resumes_from_the_one_before(tmp_path, capsys):
+    plan = write_plan(tmp_path / "plan.yaml", tmp_path)
+    run = tmp_path / "results/semantic_s0"
+    run.mkdir(parents=True)
+    (run / "metrics.jsonl").write_text(json.dumps({"event": "train", "step": 1, "loss": 1.0}) + "\n")
+    (run / "last.prev.pt").write_bytes(b"")  # a crash between the two renames of a save left no last.pt
+    assert experiment(plan, "--dry-run") == 0
+    assert re.search(r"resume\s+semantic_s0\s+1/2\s*$", capsys.readouterr().out, re.M)
+
+
+@pytest.mark.parametrize("recorded_in, finished, status", [
+    ("results", True, "stale"),  # evaluated on another folder
+    ("start", True, "stale"),  # trained on another folder
+    ("start", False, "stale"),  # half trained on another folder: not resumed on the plan's
+    (None, True, "done"),  # a run that names no folder (before the `start` records did) keeps its state
+    (None, False, "resume"),
+])
+def test_a_run_on_another_dataset_folder_is_stale(tmp_path, recorded_in, finished, status):
+    plan = load_plan(write_plan(tmp_path / "plan.yaml", tmp_path))
+    spec = plan.runs[0]
+    cfg = resolve_config(plan, spec)
+    trained_on = replace(spec.data, seed=7).directory(plan.data_root)  # the recipe changed since
+    run = tmp_path / "results" / spec.name
+    run.mkdir(parents=True)
+    (run / "config.yaml").write_text(yaml.safe_dump(cfg.to_dict()))
+    start = {"event": "start", "step": 0, **({"data": str(trained_on)} if recorded_in == "start" else {})}
+    end = [{"event": "end", "step": cfg.max_updates}] if finished else []
+    (run / "metrics.jsonl").write_text("".join(json.dumps(e) + "\n" for e in [start, *end]))
+    (run / "last.pt").write_bytes(b"")
+    (run / "results.json").write_text(json.dumps({
+        "updates": cfg.max_updates, "evaluation": {"splits": list(spec.splits), "max_examples": spec.eval_max_examples},
+        "data": {"dir": str(trained_on)} if recorded_in == "results" else {}}))
+    state = run_state(run, spec, cfg, plan.data_root)
+    assert state.status == status
+    if status == "stale":
+        assert state.detail == f"data changed: {trained_on.name} -> {spec.data.directory(plan.data_root).name}"
 
 
 def test_a_start_without_a_checkpoint_is_new_and_says_it_starts_over(tmp_path, capsys):
@@ -613,6 +707,32 @@ def test_a_field_added_since_a_run_started_counts_as_its_default(tmp_path, plan_
     (tmp_path / "config.yaml").write_text(yaml.safe_dump(saved))
     plan = TrainConfig(max_train_target_length=14, max_dev_target_length=plan_value)
     assert config_changes(tmp_path, plan) == changed
+
+
+@pytest.mark.parametrize("schedule, changed", [
+    ({"lr_decay": "cosine", "decay_updates": 0}, ["max_updates"]),  # the decay ends at the budget: it would bend
+    ({"lr_decay": "cosine", "decay_updates": 100}, []),  # the decay ends where it did: the run trains on at its floor
+    ({"lr_decay": "none", "decay_updates": 0}, []),
+])
+def test_a_new_budget_changes_the_config_only_where_it_moves_the_schedule(tmp_path, schedule, changed):
+    from gscan_ros.training.config import TrainConfig
+
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump(TrainConfig(max_updates=100, **schedule).to_dict()))
+    assert config_changes(tmp_path, TrainConfig(max_updates=200, **schedule)) == changed
+
+
+@pytest.mark.parametrize("parser, changed", [("semantic", []), ("constituency", ["model.init_fan_in"]),
+                                             ("dependency", ["model.init_fan_in"])])
+def test_a_run_initialised_before_init_fan_in_is_stale_where_its_modules_differ_in_arity(tmp_path, parser, changed):
+    """A config.yaml without `model.init_fan_in` was initialised as 'table' does: the same as
+    the default for the semantic parse (modules of one argument at most), not for the others."""
+    from gscan_ros.training.config import TrainConfig
+
+    saved = TrainConfig(parser=parser).to_dict()
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump(saved))
+    assert config_changes(tmp_path, TrainConfig(parser=parser)) == changed
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump({**saved, "model": {"init_fan_in": "module"}}))
+    assert config_changes(tmp_path, TrainConfig(parser=parser)) == []
 
 
 def test_committed_weights_are_weights_only_and_belong_to_their_run():

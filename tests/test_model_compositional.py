@@ -1,12 +1,16 @@
 """The compositional network on synthetic graphs and random one-hot states: properties the
 equality with the reference (test_model_reference.py) does not show."""
+import math
+
 import numpy as np
 import pytest
 import torch
 
-from gscan_ros.model.compositional import antonym_overlap
+from gscan_ros.language import all_commands, get_parser
+from gscan_ros.model.compositional import CompositionalNetwork, antonym_overlap
 from gscan_ros.model.config import ModelConfig
 from gscan_ros.model.layout import COLUMN_MAJOR_MAX_WIDTH, Layout
+from gscan_ros.model.modules import ModuleTable
 from gscan_ros.model.sparse_encoder import sparse_states
 
 from model_support import GRAPHS, SIZE_KEY, binary, chain, make_net, random_states, table, teacher_batch
@@ -58,6 +62,74 @@ def test_parameter_count_matches_the_original():
                                                           "att_out_w", "att_out_b"))
     assert per_module + per_unit == 14_928
     assert sum(p.numel() for p in net.encoder.parameters()) == 60_150
+
+
+def parse_table(parser: str) -> ModuleTable:
+    """The modules of `parser`'s parses of every gSCAN command (no WordNet sharing)."""
+    parse = get_parser(parser).parse
+    return ModuleTable.from_graphs(parse(command) for command in all_commands())
+
+
+@pytest.mark.parametrize("message", ["attention", "state", "attention+state"])
+def test_each_module_is_initialised_as_a_linear_of_its_own_size(message):
+    """A module's attention output layer and child-state layer start as CG's per-module
+    Linear would: uniform within 1/sqrt(fan-in) of its own slots, not of the table's widest
+    module (dependency: 2 slots), so a one-slot module's weights reach past the bound the
+    widest module's fan-in would give."""
+    table_ = parse_table("dependency")
+    torch.manual_seed(0)
+    bank = CompositionalNetwork(ModelConfig(message=message), table_).bank
+    cfg, S = bank.cfg, bank.max_slots
+    layers = []
+    if cfg.uses_attention:  # per unit: its argument columns, the state column, the bias; fan-in (slots + 1) * A
+        w, b = bank.att_out_w, bank.att_out_b
+        layers += [(slots, torch.cat([w[u, :slots].flatten(), w[u, S], b[u, None]]), (slots + 1) * cfg.att_dim,
+                    (S + 1) * cfg.att_dim) for u, slots in enumerate(bank.unit_slots)]
+    if cfg.passes_state:  # per module: its children's rows and the bias; fan-in slots * L * H
+        LH = cfg.rnn_layers * cfg.rnn_dim
+        layers += [(slots, torch.cat([bank.state_w[m, : slots * LH].flatten(), bank.state_b[m]]), slots * LH, S * LH)
+                   for m, slots in enumerate(bank.module_slots)]
+    assert S == 2 and {slots for slots, *_ in layers} == {1, 2}
+    for _, weights, fan_in, _ in layers:
+        assert weights.abs().max() <= 1 / math.sqrt(fan_in)
+    narrow = torch.cat([weights for slots, weights, *_ in layers if slots < S])
+    assert narrow.abs().max() > 1 / math.sqrt(layers[0][3])
+
+
+@pytest.mark.parametrize("message", ["attention", "state", "attention+state"])
+def test_the_semantic_parse_starts_from_the_same_weights_either_way(message):
+    """Its modules take one argument at most: 'module' and 'table' (the initialisation of the
+    runs before `init_fan_in`) draw the same weights, bit for bit."""
+    table_ = parse_table("semantic")
+    nets = []
+    for init_fan_in in ("module", "table"):
+        torch.manual_seed(0)
+        nets.append(CompositionalNetwork(ModelConfig(message=message, init_fan_in=init_fan_in), table_).state_dict())
+    assert nets[0].keys() == nets[1].keys() and all(torch.equal(nets[0][k], nets[1][k]) for k in nets[0])
+
+
+@pytest.mark.parametrize("message", ["attention", "attention+state"])
+def test_the_parameter_count_leaves_out_the_slots_a_module_does_not_have(message):
+    """Stacked to the widest module (2 slots here), a one-slot module's entries of slot 2 are
+    never read: they get no gradient and the count (the `start` record's) leaves them out,
+    so it is the sum of per-module counts as CG builds them."""
+    from gscan_ros.model.checkpoint import parameter_count
+
+    graphs = [chain(["walk", "circle"]), chain(["push", "big", "square"]), binary()]
+    net = make_net(ModelConfig(message=message), graphs=graphs).train()
+    cfg, bank = net.cfg, net.bank
+    A, F, LH, H = cfg.att_dim, cfg.feature_dim, cfg.rnn_layers * cfg.rnn_dim, cfg.rnn_dim
+    per_unit = sum(n * (F * A + A) + (LH * A + A) + ((n + 1) * A + 1) for n in bank.unit_slots)
+    per_module = sum(p[0].numel() for p in [*bank.gru_x, *bank.gru_h, *bank.gru_bx, *bank.gru_bh, bank.out_w,
+                                            bank.out_b]) * len(net.table)
+    if cfg.passes_state:
+        per_module += sum(n * LH * H + H for n in bank.module_slots)
+    assert parameter_count(net) == 60_150 + per_module + per_unit < sum(p.numel() for p in net.parameters())
+    net.teacher_forcing(synthetic_batch(net, graphs, [3, 5, 4])).loss.backward()
+    for u, slots in enumerate(bank.unit_slots):
+        assert not bank.att_feat_w.grad[u, slots:].any() and not bank.att_out_w.grad[u, slots:bank.max_slots].any()
+    if cfg.passes_state:
+        assert not any(bank.state_w.grad[m, slots * LH:].any() for m, slots in enumerate(bank.module_slots))
 
 
 @pytest.mark.parametrize("message, attention_state", [("attention", "broadcast"), ("state", "broadcast"),

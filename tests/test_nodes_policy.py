@@ -12,16 +12,18 @@ from rclpy.qos import ReliabilityPolicy
 from sensor_msgs.msg import Image
 from std_msgs.msg import String
 
+from gscan_ros import interface, runtime
 from gscan_ros.language import get_parser
 from gscan_ros.language.lexicon import Lexicon
 from gscan_ros.model.checkpoint import build_model, checkpoint_dict, save_checkpoint
 from gscan_ros.model.decoder import command_vocabulary
 from gscan_ros.model.policy import MAX_STEPS, StepOutput
-from gscan_ros.nodes.common import EVENT_QOS, VIEWER_LOG_QOS
+from gscan_ros.nodes.common import EVENT_QOS, VIEWER_LOG_QOS, qos_profile
 from gscan_ros.nodes.policy_node import PolicyNode
 from gscan_ros.world.types import Action
 from msg_adapters import (
     cdr_to_attention,
+    cdr_to_episode_status,
     cdr_to_msg,
     cdr_to_text,
     graph_to_cdr,
@@ -319,3 +321,153 @@ def test_size_ordering_is_published_for_a_size_word(probe):
     expected = np.full((6, 6), 0.5)
     expected[0, 0], expected[5, 5] = 0.0, 1.0
     np.testing.assert_allclose(cdr_to_attention(ordering[0]), expected, atol=1 / 255)
+
+
+def told(reports) -> list[tuple[str, str]]:
+    """(outcome, text) of each `episode_status` report received."""
+    return [(r.outcome, r.text) for r in map(cdr_to_episode_status, reports)]
+
+
+def test_every_graph_that_comes_while_the_node_is_busy_gets_its_reports(probe):
+    """Two graphs queued before the node takes either: both are followed in order (the first
+    preempted by the second), none is overwritten without a report."""
+    from actionlib_msgs.msg import GoalStatus
+
+    reports = probe.record("episode_status", GoalStatus, EVENT_QOS, raw=True)
+    node, policy = start(probe, [Action.WALK])
+    graphs = probe.node.create_publisher(String, "command_graph", qos_profile(interface.COMMAND_GRAPH))
+    probe.spin_until(lambda: graphs.get_subscription_count() >= 1, what="the policy's graph subscription")
+    graphs.publish(graph("walk to a red circle"))
+    graphs.publish(graph("push a big square"))
+    probe.spin_until(lambda: len(reports) == 3, what="three reports")
+    assert told(reports) == [("active", "walk to a red circle"),
+                             ("preempted", "'walk to a red circle': a new command came after 0 actions"),
+                             ("active", "push a big square")]
+    assert policy.resets == ["walk to a red circle", "push a big square"]
+
+
+def test_a_graph_from_before_the_start_or_the_last_reset_is_rejected_on_episode_status(probe):
+    from actionlib_msgs.msg import GoalStatus
+
+    reports = probe.record("episode_status", GoalStatus, EVENT_QOS, raw=True)
+    node, policy = start(probe, [Action.WALK])
+    node.on_graph(graph(), source_info(t_ns=1))  # the latched copy a restarted policy receives
+    before_reset = time.time_ns()
+    node.on_world_reset(world_reset(), source_info())
+    node.on_graph(graph("push a big square"), source_info(t_ns=before_reset))
+    probe.spin_until(lambda: len(reports) == 2, what="two reports")
+    assert told(reports) == [
+        ("rejected", "not following 'walk to a red circle while spinning': its graph was published before this "
+                     "node started"),
+        ("rejected", "not following 'push a big square': its graph was published before the world was reset")]
+    assert policy.resets == []
+
+
+def test_a_world_reset_stamped_in_the_future_does_not_stop_the_node(probe):
+    """The reset's time is when it was published (DDS source timestamp), not what its header claims."""
+    node, policy = start(probe, [Action.WALK])
+    a_year_ns = 365 * 24 * 3600 * 10**9
+    node.on_world_reset(world_reset(time.time_ns() + a_year_ns), source_info())
+    node.on_observation(observation(0), source_info())
+    node.on_graph(graph(), source_info())
+    assert len(policy.seen) == 1
+
+
+def test_an_observation_from_before_the_reset_is_dropped_with_a_status_line(probe):
+    status = probe.record("status", String, EVENT_QOS)
+    node, policy = start(probe, [Action.WALK])
+    before_reset = time.time_ns()
+    node.on_world_reset(world_reset(), source_info())
+    node.on_observation(observation(0), source_info(t_ns=before_reset))
+    probe.spin_until(lambda: any("ignored an observation published before the world was reset" in s.data
+                                 for s in status), what="the notice")
+
+
+def test_a_map_that_cannot_be_published_is_reported_and_the_episode_goes_on_to_its_end(probe):
+    from actionlib_msgs.msg import GoalStatus
+
+    class NanMaps(ScriptedPolicy):
+        def step(self, observation):
+            return StepOutput(super().step(observation).action, {"red": np.full((6, 6), np.nan, np.float32)})
+
+    reports = probe.record("episode_status", GoalStatus, EVENT_QOS, raw=True)
+    status = probe.record("status", String, EVENT_QOS)
+    node = PolicyNode(NanMaps([Action.WALK, Action.EOS]), context=probe.context, namespace=probe.namespace,
+                      parameter_overrides=parameters())
+    probe.executor.add_node(node)
+    node.on_graph(graph(), source_info())
+    node.on_observation(observation(0), source_info())  # walk
+    node.on_observation(observation(1), source_info())  # <eos>
+    probe.spin_until(lambda: len(reports) == 2, what="the episode's end")
+    assert told(reports)[1] == ("complete", "'walk to a red circle while spinning': done after 1 actions")
+    probe.spin_until(lambda: sum("attention maps of step" in s.data and "not published: attention map must hold "
+                                 "finite non-negative weights" in s.data for s in status) == 2, what="two notices")
+
+
+def test_a_failing_step_ends_the_episode_aborted_and_the_next_command_is_followed(probe):
+    from actionlib_msgs.msg import GoalStatus
+
+    def fail_second(t):
+        if t == 1:
+            raise RuntimeError("CUDA out of memory")
+
+    actions = probe.record("action", String, EVENT_QOS)
+    reports = probe.record("episode_status", GoalStatus, EVENT_QOS, raw=True)
+    status = probe.record("status", String, EVENT_QOS)
+    policy = ScriptedPolicy([Action.WALK], on_step=fail_second)
+    node = PolicyNode(policy, context=probe.context, namespace=probe.namespace, parameter_overrides=parameters())
+    probe.executor.add_node(node)
+    node.on_graph(graph(), source_info())
+    node.on_observation(observation(0), source_info())  # walk
+    node.on_observation(observation(1), source_info())  # the step fails
+    probe.spin_until(lambda: len(actions) == 2 and len(reports) == 2, what="the forced <eos> and the end")
+    assert [a.data for a in actions] == ["walk", "<eos>"]
+    assert told(reports)[1] == ("cut", "'walk to a red circle while spinning': step 1 failed: RuntimeError: CUDA out "
+                                       "of memory")
+    assert cdr_to_msg(reports[1], "actionlib_msgs/msg/GoalStatus").status == GoalStatus.ABORTED
+    probe.spin_until(lambda: any("internal error in the policy's step: RuntimeError: CUDA out of memory" in s.data
+                                 for s in status), what="the error")
+    node.on_graph(graph("push a big square"), source_info())  # a new episode starts at once (t is 0 again)
+    assert policy.resets[-1] == "push a big square" and len(policy.seen) == 2
+
+
+def test_an_episode_whose_reply_never_comes_ends_aborted_after_step_timeout(probe):
+    """0 waits forever; a new value applies at once; the episode ends with a forced <eos>."""
+    from actionlib_msgs.msg import GoalStatus
+
+    actions = probe.record("action", String, EVENT_QOS)
+    reports = probe.record("episode_status", GoalStatus, EVENT_QOS, raw=True)
+    status = probe.record("status", String, EVENT_QOS)
+    node, policy = start(probe, [Action.WALK], step_timeout=0.0)
+    [described] = node.describe_parameters(["step_timeout"])
+    assert described.floating_point_range and described.floating_point_range[0].from_value == 0.0
+    node.on_graph(graph(), source_info())
+    node.on_observation(observation(0), source_info())  # walk
+    time.sleep(0.05)
+    node.check_step()
+    node.on_observation(observation(1), source_info())  # still running: the reply is followed
+    assert len(policy.seen) == 2
+    [result] = node.set_parameters(parameters(step_timeout=0.05))
+    assert result.successful
+    time.sleep(0.1)  # the reply to the second walk is lost
+    node.check_step()
+    probe.spin_until(lambda: len(actions) == 3 and len(reports) == 2, what="the forced <eos> and the end")
+    assert [a.data for a in actions] == ["walk", "walk", "<eos>"]
+    assert told(reports)[1] == ("cut", "'walk to a red circle while spinning': no observation came within "
+                                       "step_timeout=0.05 s after action 1")
+    probe.spin_until(lambda: any("step_timeout=0.05 s" in s.data for s in status), what="the status line")
+    node.on_observation(observation(2), source_info())  # the late reply starts nothing
+    assert len(policy.seen) == 2
+
+
+def test_torch_threads_0_gives_the_model_torchs_default_again(probe, monkeypatch):
+    threads = torch.get_num_threads()
+    monkeypatch.setattr(runtime, "_default_threads", None)
+    torch.set_num_threads(3)  # torch's default in this process, as configure_torch first finds it
+    try:
+        node, _ = start(probe, [Action.EOS], torch_threads=2)
+        assert torch.get_num_threads() == 2
+        node.set_parameters(parameters(torch_threads=0))
+        assert torch.get_num_threads() == 3
+    finally:
+        torch.set_num_threads(threads)

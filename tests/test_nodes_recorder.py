@@ -4,16 +4,32 @@ import random
 import re
 import time
 
+import pytest
 import yaml
 from actionlib_msgs.msg import GoalStatus
 from std_msgs.msg import String
 
 from gscan_ros import episode_status as es
+from gscan_ros import interface
 from gscan_ros.data.bag import BagEpisodeReader, BagWriter, read_bag_info
+from gscan_ros.data.sources import sample_episode
+from gscan_ros.language import get_parser
 from gscan_ros.nodes.commander import Outcome
 from gscan_ros.nodes.common import EVENT_QOS
+from gscan_ros.nodes.episode_recorder_node import EpisodeRecorderNode
 from gscan_ros.world.types import Action
-from msg_adapters import cdr_to_episode_status
+from gscan_ros.world.world import World
+from msg_adapters import (
+    action_to_cdr,
+    cdr_to_episode_status,
+    episode_status_to_cdr,
+    graph_to_cdr,
+    grid_header,
+    observation_to_cdr,
+    reset_to_cdr,
+    situation_to_cdr,
+    text_to_cdr,
+)
 
 from ros_helpers import in_process_stack, parameters
 
@@ -91,11 +107,11 @@ def test_a_preempted_episode_keeps_exactly_its_own_actions(probe, commander, che
         commands.publish(String(data="walk to a blue circle"))
         time.sleep(rng.uniform(0.001, 0.006))
         commands.publish(String(data="walk to a green circle"))
-        # The policy keeps only the newest graph: a B that C overtook is never started.
+        # The policy takes every graph in order: a B that C follows closely is started and preempted at once.
         commander.spin_until(lambda sent=sent: started("walk to a green circle", sent), TIMEOUT,
                              f"round {round_}'s C")
-    # Each round's A is preempted, and so is each C: by the next round's A, the last one by
-    # the commander's command (sent once the last C runs: it comes through another writer).
+    # Each round's A and B are preempted, and so is each C: by the next round's A, the last
+    # one by the commander's command (sent once the last C runs: it comes through another writer).
     stack.policy_node.set_parameters(parameters(max_steps=2))
     final = commander.run_episode("walk to a circle", timeout=TIMEOUT)
     assert final.outcome is Outcome.MAX_STEPS, [(r.episode_id, r.outcome, r.text) for r in map(
@@ -105,9 +121,9 @@ def test_a_preempted_episode_keeps_exactly_its_own_actions(probe, commander, che
         return sum(cdr_to_episode_status(r).ended for r in reports)
 
     deadline = time.monotonic() + TIMEOUT
-    while time.monotonic() < deadline and not (ended() >= 21 and stack.recorder.episodes == ended()):
+    while time.monotonic() < deadline and not (ended() >= 31 and stack.recorder.episodes == ended()):
         commander.spin_for(0.05)
-    assert ended() >= 21 and stack.recorder.episodes == ended(), (ended(), stack.recorder.episodes)
+    assert ended() >= 31 and stack.recorder.episodes == ended(), (ended(), stack.recorder.episodes)
     bag = close(stack, probe)
     told = {}
     for msg in reports:
@@ -117,7 +133,7 @@ def test_a_preempted_episode_keeps_exactly_its_own_actions(probe, commander, che
                                        if report.outcome == es.PREEMPTED else None)
     records, report = read(bag, include_incomplete=True)
     preempted = {r.episode.meta["episode_id"]: len(r.episode.actions) for r in records if r.outcome == es.PREEMPTED}
-    assert len(preempted) >= 20
+    assert len(preempted) >= 30
     assert preempted == {i: n for i, (outcome, n) in told.items() if outcome == es.PREEMPTED}
     assert read(bag)[0] == [] and report.lost_episodes == 0  # nothing here was a complete demonstration
 
@@ -177,3 +193,105 @@ def test_memory_does_not_grow_with_what_is_published(probe, tmp_path):
         node.destroy_node()
     assert peak < 12_000_000, peak
     assert read_bag_info(tmp_path / "bag").topics["/situation"].message_count == 40
+
+
+class Feed:
+    """The stack's messages handed to a recorder as its subscriptions would (no spinning),
+    published 1 µs apart: the world's state, the policy's reports and actions."""
+
+    def __init__(self, recorder: EpisodeRecorderNode, seed: int = 3):
+        self.recorder = recorder
+        self.episode = sample_episode(seed)
+        self.world = World(self.episode.situation)
+        self.graph = get_parser("semantic").parse(self.episode.command)
+        self.now = time.time_ns()
+
+    def __call__(self, endpoint: interface.Endpoint, data: bytes) -> None:
+        self.now += 1000
+        self.recorder._record(endpoint, data, {"source_timestamp": self.now, "received_timestamp": self.now + 1})
+
+    def state(self) -> None:
+        self(interface.SITUATION, situation_to_cdr(self.world.snapshot()))
+        self(interface.OBSERVATION, observation_to_cdr(self.world.encode(), header=grid_header(self.now)))
+
+    def joined(self) -> None:
+        """The latched samples a subscriber gets on joining."""
+        self(interface.WORLD_RESET, reset_to_cdr(self.now))
+        self.state()
+        self(interface.COMMAND_GRAPH, graph_to_cdr(self.graph))
+
+    def report(self, n: int, outcome: str) -> None:
+        self(interface.EPISODE_STATUS, episode_status_to_cdr(
+            es.EpisodeStatus(f"/policy_node/{n}", n, outcome, self.episode.command)))
+
+    def act(self, *actions: Action) -> None:
+        for action in actions:
+            self(interface.ACTION, action_to_cdr(action))
+            if action is not Action.EOS:
+                self.world.step(action)
+                self.state()
+
+    def whole_episode(self, n: int) -> None:
+        """The planner's demonstration of the command, from where the world is now."""
+        from gscan_ros.world import demonstrate
+
+        actions = demonstrate(self.world.snapshot(), self.episode.command)
+        self(interface.COMMAND, text_to_cdr(self.episode.command))
+        self(interface.COMMAND_GRAPH, graph_to_cdr(self.graph))
+        self.report(n, es.ACTIVE)
+        self.act(*actions, Action.EOS)
+        self.report(n, es.COMPLETE)
+
+
+@pytest.fixture
+def recorder(probe, tmp_path):
+    """A recorder of `tmp_path/bag` (with `overwrite`); the test destroys it, which closes the bag."""
+    return EpisodeRecorderNode(context=probe.context, parameter_overrides=parameters(
+        bag_dir=str(tmp_path / "bag"), overwrite=True))
+
+
+def test_a_recorder_that_joins_mid_episode_writes_a_whole_bag(recorder, tmp_path):
+    """The end of the episode that ran when it joined is recorded but not counted; the bag reads complete."""
+    feed = Feed(recorder)
+    feed.joined()
+    feed.act(Action.TURN_LEFT)
+    feed.report(1, es.PREEMPTED)
+    feed.whole_episode(2)
+    recorder.destroy_node()
+    records, report = read(tmp_path / "bag", include_incomplete=True)
+    assert [(r.outcome, r.episode.meta["episode_id"]) for r in records] == [(es.COMPLETE, "/policy_node/2")]
+    assert report.complete and report.drop_reasons == {} and read_bag_info(tmp_path / "bag").episodes == 1
+
+
+def test_a_new_bag_dir_mid_episode_ends_it_in_the_old_bag_and_leaves_both_bags_whole(recorder, tmp_path):
+    feed = Feed(recorder)
+    feed.joined()
+    feed.report(1, es.ACTIVE)
+    feed.act(Action.TURN_LEFT, Action.WALK)
+    [result] = recorder.set_parameters(parameters(bag_dir=str(tmp_path / "second")))
+    assert result.successful
+    feed.act(Action.TURN_RIGHT, Action.EOS)
+    feed.report(1, es.COMPLETE)
+    feed.whole_episode(2)
+    recorder.destroy_node()
+    [first], first_report = read(tmp_path / "bag", include_incomplete=True)
+    assert (first.outcome, first.episode.actions) == (es.PREEMPTED, (Action.TURN_LEFT, Action.WALK))
+    assert first.header["outcome"] == es.PREEMPTED and first_report.complete
+    assert read_bag_info(tmp_path / "bag").episodes == 1
+    [second], second_report = read(tmp_path / "second", include_incomplete=True)
+    assert (second.outcome, second.episode.meta["episode_id"]) == (es.COMPLETE, "/policy_node/2")
+    assert second_report.complete and read_bag_info(tmp_path / "second").episodes == 1
+
+
+def test_the_bag_being_recorded_is_refused_as_a_new_bag_dir(recorder, tmp_path):
+    """With `overwrite` too: opening it again would wipe it under its own writer."""
+    feed = Feed(recorder)
+    feed.joined()
+    feed.whole_episode(1)
+    for same in (tmp_path / "bag", tmp_path / "bag" / ".." / "bag"):
+        [refused] = recorder.set_parameters(parameters(bag_dir=str(same)))
+        assert not refused.successful and "is the bag being recorded" in refused.reason
+    feed.whole_episode(2)
+    recorder.destroy_node()
+    records, report = read(tmp_path / "bag")
+    assert len(records) == 2 and report.complete and read_bag_info(tmp_path / "bag").episodes == 2

@@ -1,5 +1,6 @@
 """world_simulator_node in-process: lock-step replies, rejected and stale actions, reset_world."""
 import json
+import time
 
 import numpy as np
 import pytest
@@ -132,18 +133,21 @@ def test_missing_dataset_is_a_start_up_error(probe):
         WorldSimulatorNode(context=probe.context, parameter_overrides=parameters(dataset="/no/such/dataset.txt"))
 
 
-def dataset_with_a_bad_second_example(tmp_path, **bad):
-    """dataset.txt whose 'test' split has a good example, then one with `bad` situation fields."""
+def dataset_with_a_bad_second_example(tmp_path, then=(), **bad):
+    """dataset.txt whose 'test' split has a good example, then one with `bad` situation fields,
+    then the examples of the seeds `then`."""
     from gscan_ros.data.dataset import DatasetHeader, Example, example_line, write_dataset_json
     from gscan_ros.language import tokenize
 
-    episode = sample_episode(0)
-    example = Example(tokenize(episode.command), episode.situation, episode.actions)
-    line = example_line(example)
-    broken = example.to_json()
+    def example(seed):
+        episode = sample_episode(seed)
+        return Example(tokenize(episode.command), episode.situation, episode.actions)
+
+    broken = example(0).to_json()
     broken["situation"].update(bad)
     return write_dataset_json(tmp_path / "dataset.txt", DatasetHeader(),
-                              {"test": [line, json.dumps(broken)]})
+                              {"test": [example_line(example(0)), json.dumps(broken),
+                                        *(example_line(example(seed)) for seed in then)]})
 
 
 def call_reset(probe):
@@ -169,6 +173,55 @@ def test_reset_to_an_unsupported_grid_size_fails_cleanly_and_the_node_keeps_serv
     probe.spin_until(lambda: any("100000 is not supported" in s.data for s in status), what="the failure on status")
     node.on_action(text_to_cdr("turn left"), source_info())  # still serving
     probe.spin_until(lambda: len(observations) == 2, what="the reply to an action after the failed reset")
+
+
+def test_a_malformed_example_fails_its_reset_and_the_examples_after_it_are_served(probe, tmp_path):
+    """The next reset serves the example after the bad one (not example 0), and a node
+    started beyond it reaches its own example."""
+    dataset = dataset_with_a_bad_second_example(tmp_path, then=(7,), grid_size=100_000)
+    node = WorldSimulatorNode(context=probe.context,
+                              parameter_overrides=parameters(dataset=str(dataset), publish_images=False))
+    failed = node.on_reset_world(Trigger.Request(), Trigger.Response())
+    assert not failed.success and "example 1 of split 'test'" in failed.message
+    served = node.on_reset_world(Trigger.Request(), Trigger.Response())
+    assert served.success and "example 2" in served.message
+    np.testing.assert_array_equal(node.world.encode(), encoding_after(sample_episode(7).situation))
+    node.destroy_node()
+    beyond = WorldSimulatorNode(context=probe.context, parameter_overrides=parameters(
+        dataset=str(dataset), index=2, publish_images=False))
+    np.testing.assert_array_equal(beyond.world.encode(), encoding_after(sample_episode(7).situation))
+    beyond.destroy_node()
+
+
+def test_a_new_episode_counts_its_actions_from_zero(probe, world):
+    """A preempted episode sends no <eos>: the policy's ACTIVE report starts the count again
+    (with the new episode's first action when that overtook the report); garbage on
+    episode_status is one rejection."""
+    from gscan_ros import episode_status as es
+    from msg_adapters import episode_status_to_cdr
+
+    node, observations, status = world
+
+    def active(n):
+        return episode_status_to_cdr(es.EpisodeStatus(f"/policy_node/{n}", 1, es.ACTIVE, "walk to a circle"))
+
+    def act(token, replies):
+        node.on_action(text_to_cdr(token), source_info())
+        probe.spin_until(lambda: len(observations) == replies, what=f"the reply to {token!r}")
+
+    act("stay", 2)  # the episode that is preempted
+    node.on_episode_status(active(2), source_info())
+    act("stay", 3)
+    node.on_action(text_to_cdr("<eos>"), source_info())
+    probe.spin_until(lambda: any("episode ended after 1 actions" in s.data for s in status), what="the first end")
+    act("stay", 4)  # preempted too
+    started_ns = time.time_ns()
+    act("stay", 5)  # the next episode's first action, before its report
+    node.on_episode_status(active(3), source_info(t_ns=started_ns))
+    node.on_action(text_to_cdr("<eos>"), source_info())
+    probe.spin_until(lambda: sum("episode ended after 1 actions" in s.data for s in status) == 2, what="the end")
+    node.on_episode_status(b"\x00\x01\x00\x00\xff", source_info())
+    probe.spin_until(lambda: any("GoalStatus" in s.data for s in status), what="the rejection")
 
 
 def test_any_exception_in_reset_world_is_a_failed_response_not_a_dead_node(probe, world):

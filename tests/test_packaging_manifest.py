@@ -15,7 +15,7 @@ REPO = Path(__file__).resolve().parents[1]
 # Keys rosdep resolves from rosdistro itself, as checked in ros/rosdistro (2026-08-22):
 # the ROS 2 Jazzy packages of jazzy/distribution.yaml, which come from ROS, not from pip...
 ROS_PACKAGES = {"actionlib_msgs", "ament_index_python", "builtin_interfaces", "diagnostic_msgs", "launch", "launch_ros",
-                "rcl_interfaces", "rclpy", "sensor_msgs", "std_msgs", "std_srvs"}
+                "rcl_interfaces", "rclpy", "ros2launch", "sensor_msgs", "std_msgs", "std_srvs"}
 # ...and the system keys of rosdep/python.yaml. python3-nltk, -zstandard, -lz4, wordnet-base
 # and any key for mcap are not there (nor in rosdep/base.yaml): rosdep/gscan_ros.yaml has them.
 ROSDISTRO_KEYS = ROS_PACKAGES | {
@@ -89,6 +89,12 @@ def test_every_runtime_import_is_an_exec_depend(module):
 def test_every_test_only_import_is_a_test_depend(module):
     assert module in ROSDEP_KEYS, f"{module}: add its rosdep key to ROSDEP_KEYS and package.xml"
     assert ROSDEP_KEYS[module] in declared("test_depend"), f"package.xml lacks <test_depend>{ROSDEP_KEYS[module]}"
+
+
+def test_a_shipped_launch_file_brings_ros2_launch():
+    """`ros2 launch gscan_ros gscan.launch.py` needs the `launch` verb of the ros2 CLI (ros2launch)."""
+    assert list((REPO / "launch").glob("*.launch.py"))
+    assert "ros2launch" in declared(*RUNTIME)
 
 
 def test_build_and_data_dependencies():

@@ -35,12 +35,29 @@ def test_bringup_record_refuses_a_folder_that_holds_a_metadata_yaml(tmp_path, mo
     assert _snapshot(folder) == before
 
 
+def _repair_into(folder, overwrite):
+    """`bag repair` of a small bag into `folder`."""
+    from gscan_ros.data.bag import repair_bag, write_bag
+
+    from bag_support import make_episodes
+
+    write_bag(folder.parent / "source", make_episodes(2))
+    repair_bag(folder.parent / "source", folder, overwrite=overwrite)
+
+
+BAG_WRITERS = {"BagWriter": lambda folder, overwrite: BagWriter(folder, overwrite=overwrite).open(),
+               "bag repair": _repair_into}
+
+
+@pytest.mark.parametrize("writer", BAG_WRITERS)
 @pytest.mark.parametrize("overwrite", [False, True])
-def test_bag_writer_never_deletes_foreign_files(tmp_path, overwrite):
+def test_bag_writers_never_delete_foreign_files(tmp_path, overwrite, writer):
+    """One rule for every bag writer (`bag_metadata.replaceable_bag`): a metadata.yaml among
+    a user's files does not make the folder a bag to replace."""
     folder = _user_folder(tmp_path / "work")
     before = _snapshot(folder)
     with pytest.raises(DatasetFormatError, match="refusing to overwrite|pass --overwrite"):
-        BagWriter(folder, overwrite=overwrite).open()
+        BAG_WRITERS[writer](folder, overwrite)
     assert _snapshot(folder) == before
 
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from gscan_ros.data.bag_metadata import read_bag_info
+from gscan_ros.data.bag_metadata import MAX_METADATA_BYTES, read_bag_info
 from gscan_ros.data.dataset import iter_examples
 from gscan_ros.errors import CheckpointError, DatasetFormatError, GscanError, SituationError, quoted
 from gscan_ros.experiments.plan import PlanError, load_plan
@@ -126,8 +126,8 @@ BOMBS = {
                       PlanError, "plan.yaml"),
     "override": (lambda tmp: lambda: TrainConfig.load(None, [f"model.message={alias_bomb()}"]),
                  ConfigError, "override"),
-    "bag_metadata": (lambda tmp: lambda: read_bag_info(_bag_with_metadata(tmp, alias_bomb())),
-                     DatasetFormatError, "metadata.yaml"),
+    "bag_metadata": (lambda tmp: lambda: read_bag_info(_bag_with_metadata(tmp, alias_bomb(8))),
+                     DatasetFormatError, "metadata.yaml"),  # beyond its larger bound
 }
 
 
@@ -138,7 +138,8 @@ def test_a_yaml_alias_bomb_is_refused_before_it_expands(tmp_path, reader):
     with peak_memory() as memory, pytest.raises(error) as info:
         read()
     message = str(info.value)
-    assert where in message and f"{MAX_YAML_BYTES:,}" in message and "aliases" in message
+    bound = MAX_METADATA_BYTES if reader == "bag_metadata" else MAX_YAML_BYTES
+    assert where in message and f"{bound:,}" in message and "aliases" in message
     assert len(message) < SHORT_LINE
     assert memory["peak"] < 1 << 20  # the bomb's text alone would be ~4 MB
 
@@ -163,6 +164,32 @@ def test_a_yaml_file_beyond_the_size_bound_is_refused_before_it_is_read(tmp_path
         read()
     assert "config.yaml" in str(info.value) and f"{MAX_YAML_BYTES:,} bytes" in str(info.value)
     assert memory["peak"] < MAX_YAML_BYTES // 4
+
+
+def test_the_metadata_of_a_large_recording_reads(tmp_path):
+    """A robot with 1,000 topics, a day split every minute: metadata.yaml (~0.8 MB) beyond
+    the bound of configs reads, in about a second."""
+    import time
+
+    import yaml
+
+    from gscan_ros.data.bag import write_bag
+
+    from bag_support import make_episodes
+
+    write_bag(tmp_path / "bag", make_episodes(2))
+    path = tmp_path / "bag" / "metadata.yaml"
+    metadata = yaml.safe_load(path.read_text())
+    info = metadata["rosbag2_bagfile_information"]
+    topic = info["topics_with_message_count"][0]
+    info["topics_with_message_count"] += [
+        {**topic, "topic_metadata": {**topic["topic_metadata"], "name": f"/robot/sensor_{i}"}} for i in range(1000)]
+    info["files"] += [{**info["files"][0], "path": f"bag_{i}.mcap"} for i in range(1, 1440)]
+    path.write_text(yaml.safe_dump(metadata, sort_keys=False))
+    assert path.stat().st_size > MAX_YAML_BYTES
+    start = time.perf_counter()
+    assert len(read_bag_info(tmp_path / "bag").topics) > 1000
+    assert time.perf_counter() - start < 10
 
 
 # A checkpoint that declares more than the (lowered) bound, loaded in a child process

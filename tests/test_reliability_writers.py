@@ -5,6 +5,7 @@ incomplete by every reader, torn metrics lines repaired, one line on a full disk
 import contextlib
 import errno
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -16,7 +17,7 @@ from gscan_ros.cli import main
 from gscan_ros.data.bag import BagWriter, read_bag_info
 from gscan_ros.data.generate import GenerationConfig, generate_dataset
 from gscan_ros.data.io import DATASET_MANIFEST, iter_episodes, split_bags
-from gscan_ros.outputs import lock_path
+from gscan_ros.outputs import lock_path, write_text
 
 from model_support import tiny_checkpoint
 
@@ -295,6 +296,35 @@ def test_a_checkpoint_the_disk_refuses_is_one_line_and_leaves_nothing(tmp_path, 
     with pytest.raises(CheckpointError, match=r"^cannot write checkpoint '.*last.pt': file write failed$"):
         save_checkpoint(tmp_path / "last.pt", {"step": 1})
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_checkpoint_reaches_the_disk_before_its_rename_and_keeps_the_one_before(tmp_path, monkeypatch):
+    """The file is synced before the rename and the folder after it, so a power cut leaves the
+    old checkpoint or the new one; `keep_previous` moves the old one aside first."""
+    from gscan_ros.model.checkpoint import save_checkpoint
+
+    calls, fsync, replace = [], os.fsync, os.replace
+
+    def synced(fd):
+        calls.append(("fsync", os.path.basename(os.readlink(f"/proc/self/fd/{fd}"))))
+        fsync(fd)
+
+    def renamed(src, dst):
+        calls.append(("rename", os.path.basename(src), os.path.basename(dst)))
+        replace(src, dst)
+
+    monkeypatch.setattr(os, "fsync", synced)
+    monkeypatch.setattr(os, "replace", renamed)
+    save_checkpoint(tmp_path / "last.pt", {"format": 0, "step": 1}, keep_previous=True)
+    save_checkpoint(tmp_path / "last.pt", {"format": 0, "step": 2}, keep_previous=True)
+    assert calls == [("fsync", "last.pt.tmp"), ("rename", "last.pt.tmp", "last.pt"), ("fsync", tmp_path.name)] + [
+        ("fsync", "last.pt.tmp"), ("rename", "last.pt", "last.prev.pt"), ("rename", "last.pt.tmp", "last.pt"),
+        ("fsync", tmp_path.name)]
+    steps = [torch.load(tmp_path / name, weights_only=True)["step"] for name in ("last.prev.pt", "last.pt")]
+    assert steps == [1, 2]
+    calls.clear()
+    write_text(tmp_path / "config.yaml", "a: 1\n")  # every replaced output goes the same way
+    assert [c[0] for c in calls] == ["fsync", "rename", "fsync"] and calls[1][2] == "config.yaml"
 
 
 @pytest.mark.parametrize("command", ["generate", "train", "evaluate"])

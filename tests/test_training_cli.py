@@ -1,5 +1,6 @@
 """`gscan-ros train` / `evaluate` end to end on a tiny generated dataset (resume included)."""
 import json
+from pathlib import Path
 
 import pytest
 import torch
@@ -23,7 +24,8 @@ def run_train(dataset, out, *extra):
 def test_train_resume_evaluate(dataset, tmp_path, kind):
     torch.set_num_threads(1)
     run = tmp_path / "run"
-    assert run_train(dataset, run, "--set", "max_updates=2", "--set", f"model_kind={kind}") == 0
+    assert run_train(dataset, run, "--set", "max_updates=2", "--set", f"model_kind={kind}",
+                     "--set", "snapshot_every=3") == 0
     assert read_checkpoint(run / "last.pt")["step"] == 2
     assert run_train(dataset, run, "--set", "max_updates=3", "--set", f"model_kind={kind}", "--resume",
                      "--set", "snapshot_every=3") == 0
@@ -65,6 +67,77 @@ def test_resume_with_another_parser_is_refused(dataset, tmp_path, capsys):
     assert run_train(dataset, run, "--set", "max_updates=1") == 0
     assert run_train(dataset, run, "--set", "max_updates=2", "--set", "parser=dependency", "--resume") == 1
     assert "parser" in capsys.readouterr().err
+
+
+def test_resume_refuses_another_recipe_and_leaves_config_yaml(dataset, tmp_path, capsys):
+    """The keys a resume may change are the runner's (`UNTRACKED_KEYS`: budget, time, threads);
+    another recipe is refused in one line naming its keys, before any file is written."""
+    run = tmp_path / "run"
+    assert run_train(dataset, run, "--set", "max_updates=1") == 0
+    files = {p.name: p.read_bytes() for p in run.iterdir()}
+    capsys.readouterr()
+    assert run_train(dataset, run, "--set", "max_updates=2", "--set", "lr=0.003", "--set", "batching=per_command",
+                     "--resume") == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "other settings of batching, lr;" in err[0]
+    assert {p.name: p.read_bytes() for p in run.iterdir()} == files
+    assert run_train(dataset, run, "--set", "max_updates=2", "--set", "max_minutes=60", "--resume") == 0
+
+
+def test_a_damaged_last_checkpoint_resumes_from_the_one_before(dataset, tmp_path, caplog):
+    """Each save of last.pt keeps the one before as last.prev.pt; a last.pt cut short (a crash
+    the rename did not cover) resumes from it, with a warning, and trains on as straight."""
+    torch.set_num_threads(1)
+    straight, damaged = tmp_path / "straight", tmp_path / "damaged"
+    for run in (straight, damaged):
+        assert run_train(dataset, run, "--set", "max_updates=4", "--set", "seed=5") == 0
+    assert read_checkpoint(damaged / "last.prev.pt")["step"] == 2
+    data = (damaged / "last.pt").read_bytes()
+    (damaged / "last.pt").write_bytes(data[: len(data) // 2])
+    assert run_train(dataset, damaged, "--set", "max_updates=4", "--set", "seed=5", "--resume") == 0
+    assert any("last.prev.pt, the checkpoint before it" in r.getMessage() for r in caplog.records)
+    weights = [read_checkpoint(run / "last.pt")["state_dict"] for run in (straight, damaged)]
+    assert all(torch.equal(weights[1][k], v) for k, v in weights[0].items())
+
+
+def recording_saves(monkeypatch, stop_at: str | None = None) -> list:
+    """(file name, update) of every checkpoint the trainer saves, in order; a KeyboardInterrupt
+    instead of the first save of `stop_at`."""
+    import gscan_ros.training.trainer as trainer
+
+    saves, save = [], trainer.save_checkpoint
+
+    def recorded(path, ckpt, **kwargs):
+        if Path(path).name == stop_at:
+            raise KeyboardInterrupt
+        saves.append((Path(path).name, ckpt["step"]))
+        save(path, ckpt, **kwargs)
+
+    monkeypatch.setattr(trainer, "save_checkpoint", recorded)
+    return saves
+
+
+def test_best_pt_is_written_after_the_resume_point_of_its_update(dataset, tmp_path, monkeypatch):
+    torch.set_num_threads(1)
+    saves = recording_saves(monkeypatch)
+    assert run_train(dataset, tmp_path / "run", "--set", "max_updates=4", "--set", "validate_every=1") == 0
+    bests = [i for i, (name, _) in enumerate(saves) if name == "best.pt"]
+    assert bests and all(saves[i - 1] == ("last.pt", saves[i][1]) for i in bests)
+
+
+def test_a_stop_between_last_and_best_leaves_a_best_pt_the_resume_writes(dataset, tmp_path, monkeypatch):
+    """Stopped after last.pt and before best.pt of a new best: last.pt holds that best's
+    weights, and the resume writes best.pt from it."""
+    torch.set_num_threads(1)
+    run = tmp_path / "run"
+    recording_saves(monkeypatch, stop_at="best.pt")
+    assert run_train(dataset, run, "--set", "max_updates=2") != 0
+    last = read_checkpoint(run / "last.pt")
+    assert (last["step"], last["best_step"]) == (2, 2) and not (run / "best.pt").exists()
+    monkeypatch.undo()
+    assert run_train(dataset, run, "--set", "max_updates=2", "--resume") == 0
+    best = read_checkpoint(run / "best.pt")
+    assert best["step"] == 2 and all(torch.equal(best["state_dict"][k], v) for k, v in last["state_dict"].items())
 
 
 def test_unknown_config_key_exits_1(dataset, tmp_path, capsys):

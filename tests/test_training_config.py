@@ -24,6 +24,9 @@ def test_yaml_and_overrides(tmp_path):
     (["batch_size"], "key=value"),
     (["batch_size=abc"], "batch_size"),
     (["batch_size=2.5"], "batch_size"),
+    (["seed=-1"], "seed must be in"),
+    (["seed=4294967296"], "seed must be in"),
+    (["seed=4294967000", "screen_seeds=2"], "seed must be in"),  # the second candidate is past numpy's range
 ])
 def test_bad_settings_are_named(overrides, message):
     with pytest.raises(ConfigError, match=message):

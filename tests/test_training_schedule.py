@@ -57,6 +57,21 @@ def test_schedule_is_applied_and_resumed(dataset, tmp_path):
     assert lrs == pytest.approx([0.004, 0.004, 0.0025, 0.001, 0.001])
 
 
+def test_a_resume_may_not_move_the_end_of_the_decay(dataset, tmp_path, capsys):
+    """With `decay_updates` 0 the decay ends at `max_updates`: a resume with another budget
+    would bend the schedule under the run, so it is refused; with its own end it may grow."""
+    run = tmp_path / "run"
+    common = ["--set", "lr_decay=cosine", "--set", "validate_every=2", "--set", "checkpoint_every=2"]
+    assert run_train(dataset, run, *common, "--set", "max_updates=2") == 0
+    capsys.readouterr()
+    assert run_train(dataset, run, *common, "--set", "max_updates=4", "--resume") == 1
+    assert "other settings of max_updates;" in capsys.readouterr().err
+    ends_itself = tmp_path / "ends_itself"
+    assert run_train(dataset, ends_itself, *common, "--set", "decay_updates=2", "--set", "max_updates=2") == 0
+    assert run_train(dataset, ends_itself, *common, "--set", "decay_updates=2", "--set", "max_updates=4",
+                     "--resume") == 0
+
+
 def test_late_batch_size_takes_over_at_its_update_and_survives_a_resume_there(dataset, tmp_path):
     torch.set_num_threads(1)
     late = ["--set", "late_batch_size=4", "--set", "late_batch_from=2", "--set", "validate_every=2",

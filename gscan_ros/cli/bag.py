@@ -5,7 +5,10 @@ complete episode before a truncation) is written to NEW as a fresh rosbag2 bag: 
 zstd-compressed MCAP with its summary, indexes and footer, plus metadata.yaml, keeping
 each message's channel, schema, sequence and times, so that third-party readers open the
 result (tested with the `rosbags` library, which refuses a bag without an MCAP footer).
-In an episode bag, the pieces of episodes cut by damage are left out. BAG is only read.
+In an episode bag, bad messages and the reports of episodes that could not be read
+(cut by damage, holding a bad message) are left out, so NEW reads back as the episodes
+BAG gave, with nothing lost. A folder of .mcap files without metadata.yaml (a killed
+`ros2 bag record`) is read in name order and gets one. BAG is only read.
 """
 from __future__ import annotations
 
@@ -57,18 +60,26 @@ def run_repair(args: argparse.Namespace) -> int:
         raise DatasetFormatError(f"{out}: cannot write the repaired bag ({exc.strerror or exc})") from None
     source = result.source
     print(f"read {bag}: {source.state()}")
-    print(f"kept: {result.episodes} complete episodes, {result.messages} messages")
+    print(f"kept: {result.kept()}, {result.messages} messages")
     if source.complete:
         print("lost: nothing")
     else:
-        bound = "" if source.exact else "at least "
         details = [f"{count} {what}" for count, what in (
             (source.lost_chunks, "unreadable chunk(s)"),
             (len(source.corrupt_regions), "damaged region(s)"),
+            (len(source.truncated_files), "file(s) without MCAP footer"),
             (source.unread_bytes, "torn trailing bytes"),
-            (source.incomplete_episodes, "episode(s) cut"),
-            (result.dropped_messages, "intact message(s) of cut episodes left out"),
+            (source.bad_messages, "bad message(s)"),
+            (source.incomplete_episodes, "episode(s) that could not be read"),
+            (result.dropped_messages, "readable message(s) left out"),
         ) if count]
-        print(f"lost: {bound}{source.lost_episodes} episodes / {source.lost_messages} messages ({', '.join(details)})")
+        print(f"lost: {source.bound(source.episodes_exact)}{source.lost_episodes} episodes / "
+              f"{source.bound(source.messages_exact)}{source.lost_messages} messages"
+              + (f" ({', '.join(details)})" if details else ""))
+        why = [source.reasons()] if source.drop_reasons else []
+        if source.first_bad_message:
+            why.append(f"the first bad message: {source.first_bad_message}")
+        if why:
+            print("why: " + "; ".join(why))
     print(f"wrote {result.info.path}: complete bag (MCAP summary, indexes and footer; metadata.yaml)")
     return 0

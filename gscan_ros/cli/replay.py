@@ -4,15 +4,15 @@ Each complete episode of the bag is restarted from its recorded initial situatio
 command; the policy acts, the one World executes, and the produced action sequence
 is compared with the recorded one (exact match, overall and per split). Recorded
 episodes that did not end complete (cut, preempted, rejected) are counted and left out
-unless --include-incomplete.
+unless --include-incomplete. BAG may also be a folder of per-split bags (`generate
+--format mcap`): the bags of --splits, or all of them, are replayed.
 """
 from __future__ import annotations
 
 import argparse
 import itertools
-from pathlib import Path
 
-from gscan_ros.cli.args import existing_file, positive_int
+from gscan_ros.cli.args import existing_file, existing_path, positive_int
 from gscan_ros.errors import DatasetFormatError
 
 
@@ -22,7 +22,8 @@ def register(subparsers) -> None:
         help="re-run a bag's episodes closed-loop and compare with the recorded actions",
         description=__doc__.split("\n\n")[1],
     )
-    parser.add_argument("bag", type=Path, help="rosbag2 directory (metadata.yaml + MCAP)")
+    parser.add_argument("bag", type=existing_path, help="rosbag2 directory (metadata.yaml + MCAP), or a folder of "
+                                                         "per-split bags")
     parser.add_argument("--checkpoint", type=existing_file, default=None,
                         help="model checkpoint (default: the shipped model)")
     parser.add_argument("--max-episodes", type=positive_int, default=None, help="replay only the first N episodes")
@@ -35,17 +36,20 @@ def register(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from gscan_ros.data.bag import iter_bag_episodes
-    from gscan_ros.data.splits import require_splits
+    from gscan_ros.data.io import select_bags
     from gscan_ros.model.policy import Policy
     from gscan_ros.training.evaluate import evaluate_episodes
     from gscan_ros.training.failures import failure_label
 
-    reader = iter_bag_episodes(args.bag, args.splits, include_incomplete=args.include_incomplete)
-    if args.splits and reader.info.splits:  # a split the bag's writer counted none of: a typo, or not this bag's
-        require_splits(args.splits, reader.info.splits, args.bag)
-    episodes = list(itertools.islice(reader, args.max_episodes))
+    bags = select_bags(args.bag, args.splits)  # a split none of the bags holds (or a typo) is named
+    if bags is None:
+        raise DatasetFormatError(f"{args.bag}: not a rosbag2 bag (no metadata.yaml or .mcap files) "
+                                 "nor a folder of per-split bags (<split>/metadata.yaml)")
+    readers = [iter_bag_episodes(bag, args.splits, include_incomplete=args.include_incomplete) for bag in bags]
+    episodes = list(itertools.islice(itertools.chain.from_iterable(readers), args.max_episodes))
     if not episodes:
-        raise DatasetFormatError(f"{args.bag}: no complete episodes to replay ({reader.report.summary()})")
+        summaries = "; ".join(reader.report.summary() for reader in readers)
+        raise DatasetFormatError(f"{args.bag}: no complete episodes to replay ({summaries})")
     policy = Policy.from_checkpoint(args.checkpoint)
     result = evaluate_episodes(policy, episodes, batch_size=args.batch_size)
     matched = sum(p.exact_match for p in result.predictions)
@@ -57,10 +61,14 @@ def run(args: argparse.Namespace) -> int:
         print(f"  {split:<16} {stats['exact_match']:6.2f}%  of {stats['examples']} episodes"
               + (f"  (failed: {failed})" if failed else ""))
     if args.max_episodes is None:
-        outcomes = reader.report.outcomes
+        outcomes: dict[str, int] = {}
+        for reader in readers:
+            for outcome, n in reader.report.outcomes.items():
+                outcomes[outcome] = outcomes.get(outcome, 0) + n
         if outcomes:
             kept = "replayed" if args.include_incomplete else "left out"
             print(f"{kept}: " + ", ".join(f"{n} {outcome}" for outcome, n in sorted(outcomes.items())))
-        if reader.report.lost_episodes:
-            print(f"warning: {reader.report.summary()}")
+        for reader in readers:
+            if reader.report.lost_episodes:
+                print(f"warning: {reader.report.summary()}")
     return 0

@@ -25,7 +25,9 @@ def register(subparsers) -> None:
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config key, e.g. --set batch_size=100 --set model.rnn_dim=40")
     mode = p.add_mutually_exclusive_group()
-    mode.add_argument("--resume", action="store_true", help="continue from RUN_DIR/last.pt")
+    mode.add_argument("--resume", action="store_true",
+                      help="continue from RUN_DIR/last.pt with the run's own settings (only the budget and threads "
+                           "may change; docs/experiments.md)")
     mode.add_argument("--overwrite", action="store_true",
                       help="replace the run files already in RUN_DIR (refused without this flag)")
     p.add_argument("--include-incomplete", action="store_true",

@@ -7,7 +7,9 @@ is only replayed. Recorded episodes that did not end complete are counted by out
 that lost data (truncated or corrupt MCAP, episodes dropped) fails verification too,
 with one line per bag saying what was lost, unless `--allow-partial` accepts it. A
 per-split bag dataset that is incomplete (its manifest names a split without its bag) or
-lacks a split asked for is refused before anything is read, as dataset.txt is.
+lacks a split asked for is refused before anything is read, as dataset.txt is. Finding
+no episode at all fails, and so does a bag whose episodes lie on more than one grid size
+(a dataset has one; `train` refuses it).
 """
 from __future__ import annotations
 
@@ -103,6 +105,11 @@ def run(args: argparse.Namespace) -> int:
         if mismatches <= args.show:
             tqdm.write(f"MISMATCH example {episode.example_id} of split {episode.split!r}: "
                        f"{episode.command!r}: {reason}")
+    if not checked:
+        from gscan_ros.errors import DatasetFormatError
+
+        summaries = "; ".join(reader.report.summary() for reader in readers or [])
+        raise DatasetFormatError(f"{args.dataset}: no episodes found" + (f" ({summaries})" if summaries else ""))
     print(f"verified {checked} examples: {mismatches} mismatch(es)"
           + (f" ({live} recorded episodes replayed, not re-planned)" if live else ""))
     outcomes: dict[str, int] = {}
@@ -121,7 +128,10 @@ def run(args: argparse.Namespace) -> int:
         else:
             print(f"gscan-ros verify: error: lost data: {line} (pass --allow-partial to accept it; "
                   f"`gscan-ros bag repair` rewrites what is left as a complete bag)", file=sys.stderr)
-    return 1 if mismatches or (losses and not args.allow_partial) else 0
+    mixed = [line for line in (reader.report.mixed_grid_sizes() for reader in readers or []) if line]
+    for line in mixed:
+        print(f"gscan-ros verify: error: {line} (`train` refuses it)", file=sys.stderr)
+    return 1 if mismatches or mixed or (losses and not args.allow_partial) else 0
 
 
 def _bag_readers(dataset, splits, include_incomplete: bool):

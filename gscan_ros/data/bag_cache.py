@@ -29,13 +29,16 @@ from gscan_ros import episode_status as es
 from gscan_ros.data.bag_format import GraphCache, episode_from_header
 from gscan_ros.data.bag_metadata import CACHE_DIR, METADATA_FILE, read_bag_info
 from gscan_ros.data.bag_reader import BagEpisodeReader
+from gscan_ros.data.bag_report import BagReadReport
 from gscan_ros.data.episode import Episode
 from gscan_ros.errors import DatasetFormatError
 from gscan_ros.world.types import Action
 
 log = logging.getLogger(__name__)
 
-CACHE_VERSION = 4  # 4: every outcome cached (headers' "outcome"), selected at load
+# 4: every outcome cached (headers' "outcome"), selected at load; 5: every stack of a bag read,
+# bad messages cost their episode, `exact` says whether the episode count is known.
+CACHE_VERSION = 5
 CACHE_FILE = "episodes.npz"
 _ACTIONS = tuple(Action)
 
@@ -72,7 +75,8 @@ class EpisodeCache:
 
     @property
     def lost_episodes(self) -> int:
-        """Episodes of the bag that the cache lacks (a lower bound unless `source['exact']`)."""
+        """Episodes of the bag that the cache lacks (a lower bound unless `source['exact']`:
+        our writer closed the bag and counted its episodes)."""
         return int(self.source["lost_episodes"])
 
     @property
@@ -132,7 +136,8 @@ def cache_path(bag_dir: str | os.PathLike) -> Path:
 
 def _cache_key(bag_dir: Path) -> str:
     info = read_bag_info(bag_dir)
-    parts = [f"v{CACHE_VERSION}", hashlib.sha256((bag_dir / METADATA_FILE).read_bytes()).hexdigest()]
+    metadata = bag_dir / METADATA_FILE
+    parts = [f"v{CACHE_VERSION}", hashlib.sha256(metadata.read_bytes()).hexdigest() if metadata.is_file() else "-"]
     for path in info.mcap_paths:
         stat = path.stat()
         parts.append(f"{path.name}:{stat.st_size}:{stat.st_mtime_ns}")
@@ -161,7 +166,7 @@ def load_episode_cache(
         _save(path, arrays)
     source = json.loads(arrays["source"].tobytes())
     if not source["complete"]:
-        bound = "" if source["exact"] else "at least "
+        bound = BagReadReport.bound(source["exact"])
         log.warning(
             "%s: episode cache built from a damaged bag: %s%d episodes lost (%s); "
             "`gscan-ros bag repair` writes what is left as a complete bag",
@@ -197,6 +202,9 @@ def _decode(bag_dir: Path, key: str) -> dict[str, np.ndarray]:
         actions.extend(int(a) for a in record.episode.actions)
         action_offsets.append(len(actions))
         states.append(record.states)
+    mixed = reader.report.mixed_grid_sizes()
+    if mixed:
+        raise DatasetFormatError(mixed)
     all_states = np.concatenate(states) if states else np.zeros((0, 6, 6, 16), np.uint8)
     if all_states.size and all_states.max() > 1:
         raise DatasetFormatError(f"{bag_dir}: observations are not 0/1 one-hot encodings")
@@ -205,7 +213,7 @@ def _decode(bag_dir: Path, key: str) -> dict[str, np.ndarray]:
     source = {
         "complete": report.complete,
         "state": report.state(),
-        "exact": report.exact,
+        "exact": report.episodes_exact,
         "episodes_read": report.episodes_read,
         "lost_episodes": report.lost_episodes,
         "lost_messages": report.lost_messages,

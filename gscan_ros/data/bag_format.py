@@ -91,14 +91,18 @@ class GraphCache:
     def __init__(self) -> None:
         self._graphs: dict[str, CommandGraph] = {}
 
+    def parse(self, graph_json: str) -> CommandGraph:
+        """The graph; a GraphError (a GscanError) for text that is none."""
+        graph = self._graphs.get(graph_json)
+        if graph is None:
+            graph = self._graphs[graph_json] = CommandGraph.from_json(graph_json)
+        return graph
+
     def attach(self, episode: Episode, graph_json: str | None, where: str) -> None:
         """Put the parsed graph into `episode.meta["command_graph"]` (no-op without one)."""
         if not graph_json:
             return
-        graph = self._graphs.get(graph_json)
-        if graph is None:
-            try:
-                graph = self._graphs[graph_json] = CommandGraph.from_json(graph_json)
-            except GscanError as exc:
-                raise DatasetFormatError(f"{where}: command_graph: {exc}") from None
-        episode.meta["command_graph"] = graph
+        try:
+            episode.meta["command_graph"] = self.parse(graph_json)
+        except GscanError as exc:
+            raise DatasetFormatError(f"{where}: command_graph: {exc}") from None

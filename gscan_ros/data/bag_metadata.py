@@ -5,11 +5,17 @@ the rosbag2 schema (version 9, as written by Jazzy). Our own facts ride in the
 standard `custom_data` string map under `gscan_ros.*` keys: the episode format, the
 episode count per split, and whether the writer finished (`status: closed`) or is
 still recording / was killed (`status: recording`).
+
+`ros2 bag record` writes metadata.yaml only when it closes the bag, so a killed
+recorder leaves its .mcap files alone; such a folder is still read, from its files
+in name order (each MCAP file holds its channels and schemas), with a warning.
 """
 from __future__ import annotations
 
 import json
 import os
+import re
+import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -32,6 +38,9 @@ EPISODE_FORMAT_VERSION = 2
 LEGACY_FORMAT_VERSION = 1
 STATUS_RECORDING = "recording"
 STATUS_CLOSED = "closed"
+MAX_METADATA_BYTES = 16 << 20
+"""Largest metadata.yaml: ~830 bytes per topic and ~200 per storage file, so 1,000 topics
+and a week split every minute (10,080 files) are ~3 MB."""
 
 
 @dataclass(frozen=True)
@@ -53,11 +62,14 @@ class BagInfo:
     duration_ns: int
     topics: dict[str, TopicInfo]
     custom: dict[str, str] = field(default_factory=dict)
+    counts_final: bool = True  # False: metadata.yaml is missing, or does not list every storage file
+    warnings: tuple[str, ...] = ()  # what readers log: missing metadata, unlisted files, custom data ignored
 
     @property
     def closed(self) -> bool:
-        """False while recording or when the writer died before closing the bag."""
-        return self.custom.get("gscan_ros.status", STATUS_CLOSED) != STATUS_RECORDING
+        """False while recording, when the writer died before closing the bag, or when
+        metadata.yaml does not account for every storage file (its counts are not final)."""
+        return self.counts_final and self.custom.get("gscan_ros.status", STATUS_CLOSED) != STATUS_RECORDING
 
     @property
     def publish_ordered(self) -> bool:
@@ -77,7 +89,8 @@ class BagInfo:
         if self.format_version == LEGACY_FORMAT_VERSION:  # one `/command` each
             command = self.topics.get("/command")
             return command.message_count if command else 0
-        return int(self.custom.get("gscan_ros.episodes", "0"))
+        count = self.custom.get("gscan_ros.episodes")  # dropped when malformed (`_custom_data`)
+        return None if count is None else int(count)
 
     @property
     def splits(self) -> dict[str, int]:
@@ -146,13 +159,25 @@ def write_metadata(
 
 
 def read_bag_info(bag_dir: str | os.PathLike) -> BagInfo:
-    """Parse and check `metadata.yaml`; any problem is one DatasetFormatError naming the file."""
+    """Parse and check `metadata.yaml`; any problem is one DatasetFormatError naming the file.
+
+    A folder of .mcap files without metadata.yaml (a killed `ros2 bag record`) reads from
+    its files in name order, and .mcap files that metadata.yaml does not list are read
+    after those it lists; either way the counts are not final (`closed` is False) and
+    `warnings` says so. Malformed `gscan_ros.*` custom data, advisory only, is ignored
+    with a warning."""
     bag_dir = Path(bag_dir)
     path = bag_dir / METADATA_FILE
+    on_disk = sorted((p for p in bag_dir.glob("*.mcap") if p.is_file()), key=_storage_order)
     if not path.is_file():
-        raise DatasetFormatError(f"{bag_dir}: not a rosbag2 bag (no {METADATA_FILE})")
+        if not on_disk:
+            raise DatasetFormatError(f"{bag_dir}: not a rosbag2 bag (no {METADATA_FILE} and no .mcap files)")
+        return BagInfo(bag_dir, tuple(on_disk), 0, 0, 0, 0, {}, counts_final=False, warnings=(
+            f"{bag_dir}: no {METADATA_FILE} (its recorder did not close the bag): reading its "
+            f"{len(on_disk)} .mcap file(s) in name order; `gscan-ros bag repair {bag_dir} --out NEW` "
+            f"writes a complete bag with one",))
     try:
-        info = read_yaml(path, str(path), DatasetFormatError)["rosbag2_bagfile_information"]
+        info = read_yaml(path, str(path), DatasetFormatError, MAX_METADATA_BYTES)["rosbag2_bagfile_information"]
         storage = info["storage_identifier"]
         if storage != STORAGE_ID:
             raise DatasetFormatError(f"{path}: storage {quoted(storage)} is not supported (only {STORAGE_ID!r})")
@@ -165,16 +190,10 @@ def read_bag_info(bag_dir: str | os.PathLike) -> BagInfo:
             )
             for t in info["topics_with_message_count"] or []
         }
-        bag = BagInfo(
-            path=bag_dir,
-            mcap_paths=mcap_paths,
-            version=int(info["version"]),
-            message_count=int(info["message_count"]),
-            start_ns=int(info["starting_time"]["nanoseconds_since_epoch"]),
-            duration_ns=int(info["duration"]["nanoseconds"]),
-            topics=topics,
-            custom={str(k): str(v) for k, v in (info.get("custom_data") or {}).items()},
-        )
+        version = int(info["version"])
+        message_count = int(info["message_count"])
+        start_ns = int(info["starting_time"]["nanoseconds_since_epoch"])
+        duration_ns = int(info["duration"]["nanoseconds"])
     except KeyError as exc:
         raise DatasetFormatError(f"{path}: missing rosbag2 key {exc}") from None
     except (TypeError, ValueError, AttributeError) as exc:
@@ -184,12 +203,65 @@ def read_bag_info(bag_dir: str | os.PathLike) -> BagInfo:
     for mcap_path in mcap_paths:
         if not mcap_path.is_file():
             raise DatasetFormatError(f"{path}: storage file {shortened(mcap_path.name)} is missing")
-    fmt = bag.custom.get("gscan_ros.format_version", str(EPISODE_FORMAT_VERSION))
-    if fmt not in {str(version) for version in range(EPISODE_FORMAT_VERSION + 1)}:
+    custom, warnings = _custom_data(info.get("custom_data"), path)
+    fmt = custom.get("gscan_ros.format_version", str(EPISODE_FORMAT_VERSION))
+    if fmt not in {str(v) for v in range(EPISODE_FORMAT_VERSION + 1)}:
         raise DatasetFormatError(
             f"{path}: episode format version {shortened(fmt)} is newer than supported ({EPISODE_FORMAT_VERSION})"
         )
-    return bag
+    unlisted = [p for p in on_disk if p not in mcap_paths]
+    if unlisted:
+        names = ", ".join(p.name for p in unlisted[:3]) + (", ..." if len(unlisted) > 3 else "")
+        warnings.append(f"{path} does not list {len(unlisted)} .mcap file(s) of the folder ({names}): reading "
+                        f"them after the ones it lists; `gscan-ros bag repair {bag_dir} --out NEW` writes a bag "
+                        f"whose {METADATA_FILE} lists everything")
+    return BagInfo(bag_dir, mcap_paths + tuple(unlisted), version, message_count, start_ns, duration_ns, topics,
+                   custom, counts_final=not unlisted, warnings=tuple(warnings))
+
+
+def _storage_order(path: Path) -> tuple[str, int]:
+    """rosbag2's order of split files: `<name>_<n>.mcap` by n (so `_10` follows `_9`)."""
+    match = re.fullmatch(r"(.*?)(\d+)\.mcap", path.name)
+    return (match.group(1), int(match.group(2))) if match else (path.stem, -1)
+
+
+def _custom_data(custom, path: Path) -> tuple[dict[str, str], list[str]]:
+    """metadata.yaml `custom_data` as a string map, and warnings for what was ignored: it
+    is advisory (the counts our writers add), so a malformed value costs the value, not the bag."""
+    if custom is None:
+        return {}, []
+    if not isinstance(custom, dict):
+        return {}, [f"{path}: custom_data is not a map ({quoted(custom)}); ignoring it"]
+    warnings = []
+    for key in [k for k, v in custom.items() if isinstance(v, (dict, list))]:  # a string map: never walked
+        warnings.append(f"{path}: custom_data {shortened(str(key))} is not a string; ignoring it")
+        del custom[key]
+    custom = {str(k): str(v) for k, v in custom.items()}
+    for key, (valid, expected) in _COUNTS.items():
+        if key in custom and not valid(custom[key]):
+            warnings.append(f"{path}: custom_data {key} is not {expected} ({quoted(custom.pop(key))}); "
+                            "ignoring it")
+    return custom, warnings
+
+
+def _is_count(text: str) -> bool:
+    return text.isascii() and text.isdigit()
+
+
+def _is_split_counts(text: str) -> bool:
+    try:
+        splits = json.loads(text)
+    except ValueError:
+        return False
+    return isinstance(splits, dict) and all(
+        isinstance(n, int) and not isinstance(n, bool) and n >= 0 for n in splits.values())
+
+
+# The custom data our writers count episodes in: key -> (check, what it must be).
+_COUNTS = {
+    "gscan_ros.episodes": (_is_count, "a count"),
+    "gscan_ros.splits": (_is_split_counts, "a JSON map of split names to counts"),
+}
 
 
 def bag_owned_files(bag_dir: str | os.PathLike) -> list[Path]:
@@ -197,4 +269,35 @@ def bag_owned_files(bag_dir: str | os.PathLike) -> list[Path]:
     only ones an `--overwrite` may replace."""
     bag_dir = Path(bag_dir)
     own = (bag_dir / METADATA_FILE, *sorted(bag_dir.glob("*.mcap")), bag_dir / CACHE_DIR)
-    return [p for p in own if p.exists()]
+    return [p for p in own if p.exists() or p.is_symlink()]
+
+
+def replaceable_bag(bag_dir: str | os.PathLike, overwrite: bool) -> list[Path]:
+    """What must go before a new bag is written at `bag_dir`: the one overwrite rule of
+    every bag writer (BagWriter, `bag repair`). Nothing there, or an empty folder: [].
+    Anything else is refused without `overwrite`; with it, only a folder that holds nothing
+    but a bag's own files (`bag_owned_files`) is replaced: a symbolic link, a file, or a
+    folder holding anything else is refused. A refusal is one DatasetFormatError line."""
+    bag_dir = Path(bag_dir)
+    if bag_dir.is_symlink() or (bag_dir.exists() and not bag_dir.is_dir()):
+        kind = "a symbolic link" if bag_dir.is_symlink() else "not a directory"
+        raise DatasetFormatError(f"{bag_dir}: exists and is {kind} (refusing to overwrite)")
+    if not bag_dir.exists() or not any(bag_dir.iterdir()):
+        return []
+    if not overwrite:
+        raise DatasetFormatError(f"{bag_dir}: exists and is not empty (pass --overwrite to replace a bag there)")
+    own = bag_owned_files(bag_dir)
+    foreign = sorted(p.name for p in bag_dir.iterdir() if p not in own)
+    if foreign:
+        names = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
+        raise DatasetFormatError(f"{bag_dir}: not a bag (holds {names}); refusing to overwrite")
+    return own
+
+
+def remove_bag_files(paths: list[Path]) -> None:
+    """Delete what `replaceable_bag` allowed (a link is removed, never followed)."""
+    for path in paths:
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path)
+        else:
+            path.unlink()

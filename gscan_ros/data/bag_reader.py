@@ -3,8 +3,9 @@
 Streams each MCAP file through `McapScan`, so a truncated or damaged bag yields every
 complete episode it still holds; an episode cut by lost data is dropped and counted in
 the reader's `BagReadReport`, never assembled from the pieces around the damage.
-Format-2 bags (the live topics: ours, or any all-topics recording of a stack) are cut
-into episodes by `episode_assembly`; format-1 bags by their `/command` headers.
+Format-2 bags (the live topics: ours, or any all-topics recording of one or more
+stacks) are cut into episodes by `episode_assembly`, each stack on its own; a bad
+message costs the episode it belongs to. Format-1 bags are cut by their `/command` headers.
 """
 from __future__ import annotations
 
@@ -31,9 +32,9 @@ from gscan_ros.data.episode_assembly import (
     AssembledEpisode,
     EpisodeAssembler,
     Message,
-    carries_records,
+    StackDecoder,
+    StackTopics,
     publication_order,
-    stack_topic,
 )
 from gscan_ros.errors import DatasetFormatError, GscanError
 from gscan_ros.world.types import Action
@@ -52,6 +53,7 @@ class RecordedEpisode:
     states: np.ndarray | None  # uint8[T+1, G, G, 16]
     graph_json: str | None
     outcome: str = es.COMPLETE
+    key: tuple[str, str, int] | None = None  # format 2: (stack namespace, report id, start stamp) of its reports
 
 
 @dataclass
@@ -87,6 +89,8 @@ class BagEpisodeReader(Iterator[Episode]):
         include_incomplete: bool = False,
     ):
         self.info = read_bag_info(bag_dir)
+        for warning in self.info.warnings:
+            log.warning(warning)
         self.splits = None if splits is None else frozenset(splits)
         self.decode_states = decode_states
         self.include_incomplete = include_incomplete  # also yield cut, preempted and rejected episodes
@@ -98,6 +102,8 @@ class BagEpisodeReader(Iterator[Episode]):
         )
         self._episodes = (r.episode for r in self.records())
         self._decode_observation: ObservationDecoder | None = None  # for the type of the bag's `/observation`
+        self.stacks = StackTopics({t.name: t.msg_type for t in self.info.topics.values()})
+        self.dropped_keys: set[tuple[str, str, int]] = set()
 
     def __next__(self) -> Episode:
         return next(self._episodes)
@@ -115,74 +121,91 @@ class BagEpisodeReader(Iterator[Episode]):
 
     # -- format 2: the live topics --------------------------------------------------------
     def _live_records(self) -> Iterator[RecordedEpisode]:
-        action_cache: dict[bytes, Action] = {}
-
-        def decode_action(data: bytes) -> Action:
-            action = action_cache.get(data)
-            if action is None:
-                action = action_cache[bytes(data)] = cdr_to_action(data)
-            return action
-
         graphs = GraphCache()
-        assembler = EpisodeAssembler(decode_action=decode_action, decode_status=cdr_to_episode_status,
-                                     decode_text=cdr_to_text, keep_observations=self.decode_states,
-                                     records=carries_records(self.info.topics))
+        decode = live_decoder(graphs)
+        assemblers: dict[str, EpisodeAssembler] = {}  # one per stack namespace
+        lost = False
         path = self.info.path
         window = 0 if self.info.publish_ordered else REORDER_WINDOW
         for item in publication_order(self._live_messages(), window):
             if item is STREAM_LOSS:
-                assembler.lose()
+                lost = True
+                for assembler in assemblers.values():
+                    assembler.lose()
                 continue
-            try:
-                done = assembler.feed(item)
-            except GscanError as exc:
-                raise DatasetFormatError(f"{path}: {item.topic} at {item.publish_ns} ns: {exc}") from None
-            if done is None:
+            assembler = assemblers.get(item.namespace)
+            if assembler is None:
+                assembler = assemblers[item.namespace] = EpisodeAssembler(
+                    decode=decode, keep_observations=self.decode_states,
+                    records=self.stacks.carries_records(item.namespace))
+                if lost:  # its stack lost data before its first message
+                    assembler.lose()
+            done = assembler.feed(item)
+            if done is None or not self.stacks.is_stack(item.namespace):
+                continue
+            wanted = ((done.outcome == es.COMPLETE or self.include_incomplete)
+                      and (self.splits is None or done.header["split"] in self.splits))
+            record = self._assembled(path, item.namespace, done, graphs) if wanted else None
+            if wanted and record is None:  # a situation no World takes: it costs the episode, not the bag
+                assembler.discard(done, "its /situation is no gSCAN situation")
                 continue
             if done.outcome == es.COMPLETE:
                 self.report.episodes_read += 1
             else:
                 self.report.count_outcome(done.outcome)
-                if not self.include_incomplete:
-                    continue
-            if self.splits is None or done.header["split"] in self.splits:
-                yield self._assembled(path, done, graphs)
-        assembler.finish()
-        for _ in range(assembler.rejected):
-            self.report.count_outcome(es.REJECTED)
-        self.report.incomplete_episodes += sum(assembler.dropped.values())
-        self.report.discarded_messages += assembler.dropped_messages
-        self.report.drop_reasons = dict(assembler.dropped)
+            if record is not None:
+                self.report.count_grid_size(record.episode.situation.grid_size)
+                yield record
+        for namespace, assembler in assemblers.items():
+            assembler.finish()
+            if not self.stacks.is_stack(namespace):
+                continue  # another node's topics that share a stack topic's name and type
+            for _ in range(assembler.rejected):
+                self.report.count_outcome(es.REJECTED)
+            self.report.incomplete_episodes += sum(assembler.dropped.values())
+            self.report.discarded_messages += assembler.dropped_messages
+            for reason, count in assembler.dropped.items():
+                self.report.drop_reasons[reason] = self.report.drop_reasons.get(reason, 0) + count
+            self.report.bad_messages += assembler.bad_messages
+            self.report.first_bad_message = self.report.first_bad_message or assembler.first_bad
+            self.dropped_keys.update((namespace, *key) for key in assembler.dropped_keys)
 
-    def _assembled(self, path: Path, done: AssembledEpisode, graphs: GraphCache) -> RecordedEpisode:
+    def _assembled(self, path: Path, namespace: str, done: AssembledEpisode,
+                   graphs: GraphCache) -> RecordedEpisode | None:
+        """The episode `done` as read (None: its situation is no gSCAN situation)."""
         where = f"{path}: episode {done.header['episode_id']}"
-        episode = episode_from_header(done.header, done.actions, str(path))
+        try:
+            episode = episode_from_header(done.header, done.actions, str(path))
+        except GscanError:
+            return None
         graphs.attach(episode, done.graph_json, where)
         states = None
         if self.decode_states:
             # A recorder that lagged may lack some states: they are the world's, so replay them.
             states = np.stack([self._decode_observation(d) for d in done.observations] if done.observations
                               else episode.states())
-        return RecordedEpisode(episode, done.header, states, done.graph_json, done.outcome)
+        return RecordedEpisode(episode, done.header, states, done.graph_json, done.outcome,
+                               (namespace, done.status.episode_id, done.status.start_ns))
 
     def _live_messages(self) -> Iterator[Message | object]:
-        """The stack's messages (topics relative to its namespace), and LOSS where data was lost."""
-        relative: dict[str, str | None] = {}
+        """The stacks' messages (topics relative to their namespace), and LOSS where data was lost."""
+        channels: dict[tuple[Path, int], tuple[str, str] | None] = {}
         order = 0
         for scan, item in self._scan():
             if item is LOSS:
                 yield STREAM_LOSS
                 continue
             channel = item[0]
-            name = relative.get(channel.topic, "?")
-            if name == "?":
-                name = relative[channel.topic] = stack_topic(channel.topic, relative)
-                if name == interface.OBSERVATION.name:
-                    self._observation_type(scan, channel)
             self.report.messages_read += 1
-            if name is not None:
-                order += 1
-                yield Message(item[3], order, name, item[4])
+            order += 1
+            key = (scan.path, channel.id)
+            if key not in channels:
+                found = channels[key] = self.stacks.classify(channel.topic, scan.msg_type(channel))
+                if found is not None and found[1] == interface.OBSERVATION.name:
+                    self._observation_type(scan, channel)
+            found = channels[key]
+            if found is not None:
+                yield Message(item[3], order, found[0], found[1], item[4])
 
     # -- format 1: `/command` headers ------------------------------------------------------
     def _legacy_records(self) -> Iterator[RecordedEpisode]:
@@ -224,7 +247,9 @@ class BagEpisodeReader(Iterator[Episode]):
                 else:
                     self.report.episodes_read += 1
                 if done.selected:
-                    yield self._finish(path, done, graphs)
+                    record = self._finish(path, done, graphs)
+                    self.report.count_grid_size(record.episode.situation.grid_size)
+                    yield record
             elif topic == COMMAND_GRAPH.name:
                 current.graph_json = cdr_to_text(data)
         self._drop(current)
@@ -308,6 +333,13 @@ class BagEpisodeReader(Iterator[Episode]):
         elif self._decode_observation.msg_type != msg_type:
             raise DatasetFormatError(f"{self.info.path}: {channel.topic} carries both "
                                      f"{self._decode_observation.msg_type} and {msg_type}")
+
+
+def live_decoder(graphs: GraphCache) -> StackDecoder:
+    """The `StackDecoder` of format-2 bags (the reader's and `bag repair`'s): msg_adapters'
+    conversions, graphs parsed once by `graphs`."""
+    return StackDecoder(decode_action=cdr_to_action, decode_status=cdr_to_episode_status,
+                        decode_text=cdr_to_text, check_graph=graphs.parse)
 
 
 def iter_bag_episodes(

@@ -10,8 +10,9 @@ from pathlib import Path
 class BagReadReport:
     """What a read recovered and what it lost.
 
-    `lost_*` compare against metadata.yaml when the writer closed the bag; when it did
-    not (killed recorder), they are lower bounds: what was seen to be lost.
+    `lost_*` compare against metadata.yaml's counts when the writer closed the bag; else
+    (a killed recorder, or no episode count: a `ros2 bag record` bag has none) they are
+    lower bounds, what was seen to be lost (`messages_exact`, `episodes_exact`).
     """
 
     bag_dir: Path
@@ -24,6 +25,9 @@ class BagReadReport:
     outcomes: dict[str, int] = field(default_factory=dict)
     incomplete_episodes: int = 0  # started, never properly ended (end of data, damage, a missing message)
     drop_reasons: dict[str, int] = field(default_factory=dict)  # why, for format-2 bags (reason -> episodes)
+    bad_messages: int = 0  # stack messages that could not be read (each lost; its episode dropped)
+    first_bad_message: str | None = None  # the first of them: topic, publish time, why
+    grid_sizes: dict[int, int] = field(default_factory=dict)  # grid size -> episodes read (the selected ones)
     discarded_messages: int = 0  # read but outside any complete episode
     truncated_files: list[Path] = field(default_factory=list)  # ended before the MCAP footer
     unread_bytes: int = 0  # trailing bytes that held no complete record
@@ -46,9 +50,14 @@ class BagReadReport:
         return self.truncated or self.corrupt
 
     @property
-    def exact(self) -> bool:
-        """The losses are exact (the writer closed the bag), not lower bounds."""
+    def messages_exact(self) -> bool:
+        """`lost_messages` is exact (the writer closed the bag), not a lower bound."""
         return self.expected_messages is not None
+
+    @property
+    def episodes_exact(self) -> bool:
+        """`lost_episodes` is exact (our writer closed the bag and counted its episodes)."""
+        return self.expected_episodes is not None
 
     @property
     def skipped_bytes(self) -> int:
@@ -69,6 +78,17 @@ class BagReadReport:
 
     def count_outcome(self, outcome: str) -> None:
         self.outcomes[outcome] = self.outcomes.get(outcome, 0) + 1
+
+    def count_grid_size(self, grid_size: int) -> None:
+        self.grid_sizes[grid_size] = self.grid_sizes.get(grid_size, 0) + 1
+
+    def mixed_grid_sizes(self) -> str | None:
+        """One line when the episodes read lie on more than one grid size (None: one or none).
+        A model takes one grid size, and training stacks every state of a bag into one array."""
+        if len(self.grid_sizes) < 2:
+            return None
+        sizes = ", ".join(f"{n} on {g}x{g}" for g, n in sorted(self.grid_sizes.items()))
+        return f"{self.bag_dir}: episodes on {len(self.grid_sizes)} grid sizes ({sizes}); a dataset has one"
 
     @property
     def lost_episodes(self) -> int:
@@ -98,17 +118,31 @@ class BagReadReport:
         if self.truncated:
             torn = f": {self.unread_bytes} unreadable trailing bytes" if self.unread_bytes else ""
             details.append(f"no MCAP footer{torn}")
+        if self.bad_messages:
+            details.append(f"{self.bad_messages} bad message(s), the first {self.first_bad_message}")
         if self.incomplete_episodes:
-            details.append(f"{self.incomplete_episodes} incomplete")
+            reasons = self.reasons()
+            details.append(f"{self.incomplete_episodes} incomplete" + (f": {reasons}" if reasons else ""))
         if self.outcomes:
             details.append(", ".join(f"{n} {outcome}" for outcome, n in sorted(self.outcomes.items()))
                            + " (no demonstrations)")
-        of = f" of {self.expected_episodes}" if self.expected_episodes is not None else ""
-        bound = "" if self.exact else " at least"
+        if not (self.messages_exact and self.episodes_exact):
+            details.append("the writer did not close the bag" if not self.messages_exact
+                           else "the bag does not say how many episodes it holds")
+        # The bag's count holds every outcome; only the complete episodes are recovered as demonstrations.
+        of = f" (of {self.expected_episodes} recorded)" if self.episodes_exact else ""
         line = (
-            f"{self.bag_dir}: {self.state()}: recovered {self.episodes_read}{of} complete episodes; "
-            f"lost{bound} {self.lost_episodes} episodes / {self.lost_messages} messages"
+            f"{self.bag_dir}: {self.state()}: recovered {self.episodes_read} complete episodes{of}; "
+            f"lost {self.bound(self.episodes_exact)}{self.lost_episodes} episodes / "
+            f"{self.bound(self.messages_exact)}{self.lost_messages} messages"
         )
-        if not self.exact:
-            details.append("the writer did not close the bag")
         return line + (f" ({'; '.join(details)})" if details else "")
+
+    def reasons(self) -> str:
+        """Why episodes were dropped: 'cut by lost data (2), a bad /action message (1)'."""
+        return ", ".join(f"{reason} ({n})" for reason, n in sorted(self.drop_reasons.items()))
+
+    @staticmethod
+    def bound(exact: bool) -> str:
+        """'' before an exact count, 'at least ' before a lower bound."""
+        return "" if exact else "at least "

@@ -92,8 +92,9 @@ class McapScan:
     report: a record that fails validation is skipped up to the next valid chunk (its
     length fits, its data decompresses to the declared size and matches its CRC). A
     file that ends inside a record with nothing valid after it is *truncated*; damaged
-    bytes before the end of the data are *corrupt*. A file that is not MCAP, or not
-    profile `ros2`, raises a DatasetFormatError naming it.
+    bytes before the end of the data are *corrupt*; an empty file (0 bytes) is truncated
+    at its start, as one cut inside the magic. A file that is not MCAP, or not profile
+    `ros2`, raises a DatasetFormatError naming it.
 
     `channels` / `schemas` (by id) fill in as they are read; when the footer is intact,
     the summary's copies are known from the start, so messages after a lost chunk that
@@ -114,10 +115,11 @@ class McapScan:
     # -- public -----------------------------------------------------------------------------
     def items(self) -> Iterator[tuple | object]:
         size = self.path.stat().st_size
-        if size == 0:
-            raise DatasetFormatError(f"{self.path}: not an MCAP file (empty)")
-        with open(self.path, "rb") as stream, mmap.mmap(stream.fileno(), 0, access=mmap.ACCESS_READ) as data:
-            yield from self._scan(data, size)
+        if size == 0:  # created, then nothing written (a recorder killed as it split): torn at its start
+            yield LOSS
+        else:
+            with open(self.path, "rb") as stream, mmap.mmap(stream.fileno(), 0, access=mmap.ACCESS_READ) as data:
+                yield from self._scan(data, size)
         if not self.complete:
             self.report.truncated_files.append(self.path)
 

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 from collections import Counter
 from pathlib import Path
 from typing import Iterable, Mapping
@@ -24,13 +23,13 @@ from gscan_ros.data.bag_format import ACTION_DELAY_NS, EPISODE_PERIOD_NS, PROLOG
 from gscan_ros.data.bag_metadata import (
     EPISODE_FORMAT,
     EPISODE_FORMAT_VERSION,
-    METADATA_FILE,
     STATUS_CLOSED,
     STATUS_RECORDING,
     BagInfo,
-    bag_owned_files,
     mcap_file_name,
     read_bag_info,
+    remove_bag_files,
+    replaceable_bag,
     write_metadata,
 )
 from gscan_ros.data.bag_schema import (
@@ -48,7 +47,7 @@ from gscan_ros.data.bag_schema import (
     offered_qos,
 )
 from gscan_ros.data.episode import Episode
-from gscan_ros.errors import DatasetFormatError, GraphError
+from gscan_ros.errors import GraphError
 from gscan_ros.language.graph import CommandGraph
 from gscan_ros.world.types import Action
 from msg_adapters import (
@@ -230,23 +229,9 @@ class BagWriter:
 
     # -- internals ---------------------------------------------------------------------
     def _prepare_dir(self) -> None:
-        """Refuse a non-empty directory; with `overwrite`, replace only an old bag's own
-        files (metadata.yaml, *.mcap and the decode cache) and refuse anything else there."""
-        if self.bag_dir.exists() and not self.bag_dir.is_dir():
-            raise DatasetFormatError(f"{self.bag_dir}: exists and is not a directory (refusing to overwrite)")
-        if self.bag_dir.exists() and any(self.bag_dir.iterdir()):
-            if not self._overwrite:
-                raise DatasetFormatError(f"{self.bag_dir}: exists and is not empty (pass --overwrite to replace a bag)")
-            own = bag_owned_files(self.bag_dir)
-            foreign = sorted(p.name for p in self.bag_dir.iterdir() if p not in own)
-            if not (self.bag_dir / METADATA_FILE).is_file() or foreign:
-                holds = ", ".join(foreign[:3]) or "no metadata.yaml"
-                raise DatasetFormatError(f"{self.bag_dir}: not a bag (holds {holds}); refusing to overwrite")
-            for path in own:
-                if path.is_dir():
-                    shutil.rmtree(path)
-                else:
-                    path.unlink()
+        """Make way for the bag (`replaceable_bag`: with `overwrite`, only an old bag's own
+        files go) and create its directory."""
+        remove_bag_files(replaceable_bag(self.bag_dir, self._overwrite))
         self.bag_dir.mkdir(parents=True, exist_ok=True)
 
     def _require_open(self) -> None:
@@ -262,6 +247,11 @@ class BagWriter:
         if channel_id is None:
             channel_id = self.register_channel(topic, msg_type)
         self.add_record(topic, channel_id, data, t_ns, t_ns if publish_ns is None else publish_ns, 0)
+
+    @property
+    def last_publish_ns(self) -> int:
+        """The latest publish time written so far (0: none): a message that must come last goes after it."""
+        return self._last_publish_ns
 
     # -- channels and records (`bag repair` copies another bag's through these) ------------
     def channel_id(self, topic: str) -> int | None:

@@ -376,11 +376,15 @@ def iter_raw_examples(path: str | os.PathLike, splits: Iterable[str] | None = No
 def iter_examples(path: str | os.PathLike, splits: Iterable[str] | None = None) -> Iterator[tuple[str, int, Example]]:
     """(split, index, Example) in file order, one example in memory at a time."""
     for split, index, raw in iter_raw_examples(path, splits):
-        try:
-            example = Example.from_json(raw)
-        except GscanError as exc:
-            raise DatasetFormatError(f"example {index} of split {split!r}: {exc}") from None
-        yield split, index, example
+        yield split, index, decode_example(split, index, raw)
+
+
+def decode_example(split: str, index: int, raw: dict) -> Example:
+    """An example of `iter_raw_examples`; a malformed one is a DatasetFormatError naming it."""
+    try:
+        return Example.from_json(raw)
+    except GscanError as exc:
+        raise DatasetFormatError(f"example {index} of split {split!r}: {exc}") from None
 
 
 # ---------------------------------------------------------------------------------------

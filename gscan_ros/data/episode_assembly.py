@@ -7,7 +7,9 @@ DDS source timestamp), and episodes are what the policy reports (docs/bags.md):
 - an episode runs from the policy's ACTIVE report on `/episode_status` to its report of
   how it ended; its actions are the `/action` messages published in between (the policy
   publishes ACTIVE before its first action and the end after its last), so a preempted
-  episode's last action never leaks into the next one;
+  episode's last action never leaks into the next one. An end report that comes before
+  any ACTIVE report and any lost data closes an episode that was running when the
+  recording began: what came before it is the bag's prologue, not lost data;
 - its initial situation is the newest `/situation` published before it started, with
   the actions published since (and after the newest `/world_reset`) replayed through
   the World: a depth-1 latched topic may skip states under load, the action stream
@@ -19,6 +21,15 @@ DDS source timestamp), and episodes are what the policy reports (docs/bags.md):
   started and one after each action; when any is missing (a recorder that lagged), the
   reader replays the states instead.
 
+A bag's stacks are found by their topics' names and types (`StackTopics`): each
+namespace ('' at the root) whose topics include `/episode_status`, `/action` and
+`/situation` of the stack's types holds one, and every stack of a bag is read, each on
+its own (a fleet recorded with `ros2 bag record -a`); a topic of the same name from
+another node (`/battery/status`) is context. A message that cannot be read (a bad
+`/action` token, `/situation` or `/episode` that is not JSON, an `/episode_status` code
+the policy never sends) is a *bad message* (`StackDecoder`): the episode it belongs to
+is dropped with the reason, and the rest of the bag is read.
+
 Pure Python, no rclpy: payloads are decoded by the reader's callbacks.
 """
 from __future__ import annotations
@@ -26,12 +37,12 @@ from __future__ import annotations
 import heapq
 import json
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterable, Iterator, NamedTuple
+from typing import Any, Callable, Iterable, Iterator, Mapping, NamedTuple
 
 from gscan_ros import episode_status as es
-from gscan_ros import interface
 from gscan_ros.data.bag_format import LIVE_SPLIT
 from gscan_ros.data.bag_metadata import EPISODE_FORMAT_VERSION
+from gscan_ros.data.bag_schema import ACTION, EPISODE, EPISODE_STATUS, SITUATION, TOPICS, TopicSpec
 from gscan_ros.errors import DatasetFormatError, GscanError
 from gscan_ros.world.types import Action, Situation
 
@@ -39,29 +50,46 @@ REORDER_WINDOW = 4096  # messages held back to restore publication order (a reco
 MAX_PENDING_RECORDS = 1024  # `/episode` records waiting for their episode (a bound, not a limit in practice)
 
 LOSS = object()  # a marker in the message stream: data was lost here
-# The stack's topics (relative names) that make episodes; anything else in a bag is context.
-STACK_TOPICS = frozenset(
-    e.name for e in interface.ENDPOINTS
-    if e.kind == interface.TOPIC and e not in (interface.ATTENTION, interface.DIAGNOSTICS)
-)
+# The stack's topics (relative name -> spec, with the types it carries); anything else in a bag is context.
+STACK_TOPICS: dict[str, TopicSpec] = {spec.name.lstrip("/"): spec for spec in TOPICS.values()}
+# What a namespace carries when it holds a stack: the topics an episode is assembled from.
+CORE_TOPICS = frozenset(spec.name.lstrip("/") for spec in (EPISODE_STATUS, ACTION, SITUATION))
 
 
-def stack_topic(topic: str, known: dict[str, str | None]) -> str | None:
-    """The stack topic (relative name) a bag's `topic` is, or None for anything else;
-    `known` maps the bag's topics seen so far to theirs. A stack in a namespace is found
-    by its topics' suffix; the first namespace seen is the one read."""
-    namespaces = {t[: -len(n) - 1] for t, n in known.items() if n is not None}
-    for name in STACK_TOPICS:
-        if topic == f"/{name}" or topic.endswith(f"/{name}"):
-            namespace = topic[: -len(name) - 1]
-            if not namespaces or namespace in namespaces:
-                return name
+def stack_topic(topic: str, msg_type: str | None) -> tuple[str, str] | None:
+    """(namespace, relative name) when a bag's `topic` of `msg_type` is named and typed as
+    one of the stack's topics ('' for the root namespace), else None."""
+    for name, spec in STACK_TOPICS.items():
+        if (topic == f"/{name}" or topic.endswith(f"/{name}")) and msg_type is not None and spec.carries(msg_type):
+            return topic[: -len(name) - 1], name
     return None
 
 
-def carries_records(topics: Iterable[str]) -> bool:
-    """Whether a bag with these topics holds `/episode` records (our writers' bags do)."""
-    return any(stack_topic(topic, {}) == interface.EPISODE.name for topic in topics)
+class StackTopics:
+    """The stacks of a bag: its topics classified by `stack_topic`, from metadata.yaml's
+    list and the channels as they are read (a killed recorder's metadata lacks some), and
+    the namespaces that hold a stack (their topics include CORE_TOPICS)."""
+
+    def __init__(self, topics: Mapping[str, str]):
+        self._topics: dict[str, tuple[str, str] | None] = {}
+        self._names: dict[str, set[str]] = {}
+        for topic, msg_type in topics.items():
+            self.classify(topic, msg_type)
+
+    def classify(self, topic: str, msg_type: str | None) -> tuple[str, str] | None:
+        """(namespace, relative name) of a stack topic, None for context (fixed at first sight)."""
+        if topic not in self._topics:
+            found = self._topics[topic] = stack_topic(topic, msg_type)
+            if found is not None:
+                self._names.setdefault(found[0], set()).add(found[1])
+        return self._topics[topic]
+
+    def is_stack(self, namespace: str) -> bool:
+        return CORE_TOPICS <= self._names.get(namespace, set())
+
+    def carries_records(self, namespace: str) -> bool:
+        """Whether the stack in `namespace` has `/episode` records (our writers' bags do)."""
+        return EPISODE.name.lstrip("/") in self._names.get(namespace, set())
 
 
 class Message(NamedTuple):
@@ -70,6 +98,7 @@ class Message(NamedTuple):
 
     publish_ns: int
     order: int  # its position in the file (breaks ties of equal publish times)
+    namespace: str  # of its stack ('' at the root)
     topic: str  # relative to the stack's namespace: "action", "episode_status", ...
     data: bytes
 
@@ -95,6 +124,66 @@ def publication_order(items: Iterable[Message | object], window: int = REORDER_W
         yield heapq.heappop(heap)
 
 
+class StackDecoder:
+    """What a stack message holds, by topic: an Action, an EpisodeStatus, an `/episode`
+    record (a dict), a situation (a JSON object), a command's or a graph's text; other
+    topics pass undecoded. A message that cannot be read raises a GscanError: it is a bad
+    message. The one rule of the reader and of `bag repair`, so that a repaired bag holds
+    no message its reader would refuse.
+
+    `decode_action`, `decode_status` and `decode_text` turn CDR bytes into an Action, an
+    EpisodeStatus and a String's text; `check_graph` raises for text that is no CommandGraph.
+    """
+
+    def __init__(self, *, decode_action: Callable[[bytes], Action], decode_status: Callable[[bytes], es.EpisodeStatus],
+                 decode_text: Callable[[bytes], str], check_graph: Callable[[str], Any]) -> None:
+        self._action = decode_action
+        self._status = decode_status
+        self._text = decode_text
+        self._check_graph = check_graph
+        self._actions: dict[bytes, Action] = {}  # the CDR bytes of the few action tokens
+
+    def __call__(self, topic: str, data: bytes) -> Any:
+        if topic == "action":
+            action = self._actions.get(data)
+            if action is None:
+                action = self._actions[bytes(data)] = self._action(data)
+            return action
+        if topic == "episode_status":
+            return self._status(data)
+        if topic not in ("command", "command_graph", "situation", "episode"):
+            return data
+        text = self._text(data)
+        if topic == "command_graph":
+            self._check_graph(text)
+        elif topic == "situation":
+            return _json_object(text, "situation")
+        elif topic == "episode":
+            return _episode_record(text)
+        return text
+
+
+def _json_object(text: str, what: str) -> dict:
+    try:
+        value = json.loads(text)
+    except ValueError as exc:  # JSONDecodeError, or an integer beyond Python's digit limit
+        raise DatasetFormatError(f"{what} is not JSON ({exc})") from None
+    if not isinstance(value, dict):
+        raise DatasetFormatError(f"{what} is not a JSON object")
+    return value
+
+
+def _episode_record(text: str) -> dict:
+    """An `/episode` record: a JSON object with a string `id`, of a supported version."""
+    record = _json_object(text, "/episode record")
+    if not isinstance(record.get("id"), str):
+        raise DatasetFormatError("/episode record must be a JSON object with a string 'id'")
+    version = record.get("version")
+    if not isinstance(version, int) or version > EPISODE_FORMAT_VERSION:
+        raise DatasetFormatError(f"/episode record version {version!r} is not supported")
+    return record
+
+
 @dataclass
 class AssembledEpisode:
     """An ended episode, in the shape of a format-1 header (what the cache and `episode_from_header` take)."""
@@ -105,87 +194,103 @@ class AssembledEpisode:
     observations: list[bytes] | None  # one per state, or None when some were not recorded
     outcome: str
     messages: int  # the bag's stack messages since the previous episode ended (its prologue included)
+    status: es.EpisodeStatus  # its end report (id and start stamp: where the bag holds it)
+
+
+@dataclass(frozen=True)
+class _Unreadable:
+    """A bad message where a newer one replaces the older (`/situation`, `/command`,
+    `/command_graph`): the episode that would start from it is dropped for `reason`."""
+
+    reason: str
 
 
 @dataclass
 class _Open:
     report: es.EpisodeStatus
-    situation: tuple[int, str] | None  # (publish ns, JSON) the episode started from, before `replay`
+    situation: tuple[int, dict] | None  # (publish ns, JSON) the episode started from, before `replay`
     replay: list[Action]
     graph_json: str | None
     command: str | None
     record: dict | None
-    record_lost: bool  # data was lost before it started, and its `/episode` record may be in it
+    record_lost: str | None  # why its `/episode` record may be missing (lost data, a bad record)
+    damage: str | None = None  # a bad message of its own: it is dropped for this reason
     observations: list[bytes] = field(default_factory=list)
     actions: list[Action] = field(default_factory=list)
     eos: bool = False
 
 
 class EpisodeAssembler:
-    """Feed a bag's messages in publication order (`feed`, `lose`); get ended episodes back.
+    """Feed one stack's messages in publication order (`feed`, `lose`); get ended episodes back.
 
-    `decode_action`, `decode_status` and `decode_text` turn CDR bytes into an Action, an
-    EpisodeStatus and a String's text; `keep_observations` keeps each episode's
-    observation bytes; `records` says the bag holds `/episode` records (`carries_records`),
+    `decode` is a `StackDecoder`; `keep_observations` keeps each episode's observation
+    bytes; `records` says the stack has `/episode` records (`StackTopics.carries_records`),
     so an episode that starts after lost data without one lost it there and is dropped,
     not read as a live one. Counts of what could not be assembled are kept in `dropped`
-    (reason -> episodes) and `dropped_messages` (an episode's messages are those since the
-    previous one ended); commands refused before any episode began (REJECTED reports
-    without an ACTIVE one) in `rejected`.
+    (reason -> episodes), `dropped_messages` (an episode's messages are those since the
+    previous one ended) and `dropped_keys` ((report id, start stamp) of each); commands
+    refused before any episode began (REJECTED reports without an ACTIVE one) in
+    `rejected`; bad messages in `bad_messages`, the first described in `first_bad`.
     """
 
-    def __init__(self, *, decode_action: Callable[[bytes], Action],
-                 decode_status: Callable[[bytes], es.EpisodeStatus], decode_text: Callable[[bytes], str],
-                 keep_observations: bool = False, records: bool = False) -> None:
-        self._action = decode_action
-        self._status = decode_status
-        self._text = decode_text
+    def __init__(self, *, decode: Callable[[str, bytes], Any], keep_observations: bool = False,
+                 records: bool = False) -> None:
+        self._decode = decode
         self._keep_observations = keep_observations
         self._has_records = records
-        self._record_lost = False  # data was lost since the last ACTIVE report
+        self._record_lost: str | None = None  # why a record may be missing since the last ACTIVE report
+        self._prologue = True  # neither an ACTIVE report nor lost data yet: the recording may have begun mid-episode
         self._cut: str | None = None  # the id of the episode lost data cut last (its tail is no new loss)
-        self._situation: tuple[int, bytes] | None = None
+        self._status_damage: str | None = None  # a bad report since the last ACTIVE one (maybe an episode's start)
+        self._situation: tuple[int, dict] | _Unreadable | None = None
         self._since_situation: list[Action] = []  # world actions published after the newest situation
-        self._graph: bytes | None = None
-        self._command: bytes | None = None
+        self._graph: str | _Unreadable | None = None
+        self._command: str | _Unreadable | None = None
         self._observation: bytes | None = None
         self._records: dict[str, dict] = {}
         self._open: _Open | None = None
         self.dropped: dict[str, int] = {}
         self.dropped_messages = 0
+        self.dropped_keys: set[tuple[str, int]] = set()
         self._span = 0  # messages since the last episode ended (or data was lost)
         self.rejected = 0
+        self.bad_messages = 0
+        self.first_bad: str | None = None
 
     # -- input -------------------------------------------------------------------------
     def feed(self, message: Message) -> AssembledEpisode | None:
         """Take one message; returns the episode it ends, if any."""
-        topic, data = message.topic, message.data
+        topic = message.topic
         self._span += 1
+        try:
+            value = self._decode(topic, message.data)
+        except GscanError as exc:
+            self._bad(message, str(exc))
+            return None
         if topic == "action":
-            action = self._action(data)
-            if action is not Action.EOS:
-                self._since_situation.append(action)
+            if value is not Action.EOS:
+                self._since_situation.append(value)
             if self._open is not None:
-                if action is Action.EOS:
+                if value is Action.EOS:
                     self._open.eos = True
                 else:
-                    self._open.actions.append(action)
+                    self._open.actions.append(value)
         elif topic == "observation":
-            self._observation = data
+            self._observation = value
             if self._open is not None and self._keep_observations:
-                self._open.observations.append(data)
+                self._open.observations.append(value)
         elif topic == "situation":
-            self._situation, self._since_situation = (message.publish_ns, data), []
+            self._situation, self._since_situation = (message.publish_ns, value), []
         elif topic == "world_reset":
             self._since_situation = []  # the world ignores what was sent before; its new state follows
         elif topic == "command_graph":
-            self._graph = data
+            self._graph = value
         elif topic == "command":
-            self._command = data
+            self._command = value
         elif topic == "episode":
-            self._take_record(data)
+            self._take_record(value)
         elif topic == "episode_status":
-            return self._report(self._status(data))
+            return self._report(value)
         return None
 
     def lose(self) -> None:
@@ -197,7 +302,9 @@ class EpisodeAssembler:
             self._span = 0
         else:
             self._cut = self._open.report.episode_id
-        self._record_lost = self._has_records
+        self._prologue = False
+        if self._has_records:
+            self._record_lost = "its /episode record was lost"
         self._drop("cut by lost data")
         self._situation = self._graph = self._command = self._observation = None
         self._since_situation = []
@@ -206,24 +313,58 @@ class EpisodeAssembler:
         """The bag ended: an episode still open never reported its end."""
         self._drop("no end report (the recording stopped first)")
 
+    def discard(self, episode: AssembledEpisode, reason: str) -> None:
+        """An episode it ended that the reader could not build after all: dropped for `reason`."""
+        self._count_drop(reason, episode.messages, episode.status)
+
+    # -- bad messages ------------------------------------------------------------------
+    def _bad(self, message: Message, detail: str) -> None:
+        """A message that cannot be read: counted (lost) on its own, and the episode it
+        belongs to is dropped: the open one for an action or a report; the next to start
+        for a situation, command or graph (the newest before an ACTIVE report is its own);
+        for a record, the open episode if it has none yet, else the next without one."""
+        self._span -= 1
+        self.dropped_messages += 1
+        self.bad_messages += 1
+        if self.first_bad is None:
+            self.first_bad = f"/{message.topic} at {message.publish_ns} ns: {detail}"
+        reason = f"a bad /{message.topic} message"
+        topic, episode = message.topic, self._open
+        if topic == "situation":
+            self._situation, self._since_situation = _Unreadable(reason), []
+        elif topic == "command_graph":
+            self._graph = _Unreadable(reason)
+        elif topic == "command":
+            self._command = _Unreadable(reason)
+        elif topic == "episode" and (episode is None or episode.record is not None):
+            self._record_lost = reason
+        elif episode is not None:
+            episode.damage = episode.damage or reason
+        elif topic == "episode_status":
+            self._status_damage = reason  # maybe the ACTIVE report of the episode whose end comes next
+
     # -- episodes ----------------------------------------------------------------------
     def _report(self, report: es.EpisodeStatus) -> AssembledEpisode | None:
         if report.outcome == es.ACTIVE:
+            self._prologue = False
+            self._status_damage = None
             if self._open is not None:
                 self._span -= 1  # this report starts the next one
                 self._drop("a new episode started before it reported its end")
                 self._span = 1
+            prologue = [v for v in (self._situation, self._graph, self._command) if isinstance(v, _Unreadable)]
             self._open = _Open(
                 report=report,
-                situation=None if self._situation is None else (self._situation[0], self._situation[1]),
+                situation=None if isinstance(self._situation, _Unreadable) else self._situation,
                 replay=list(self._since_situation),
-                graph_json=None if self._graph is None else self._text(self._graph),
-                command=None if self._command is None else self._text(self._command),
+                graph_json=None if isinstance(self._graph, _Unreadable) else self._graph,
+                command=None if isinstance(self._command, _Unreadable) else self._command,
                 record=self._records.pop(report.episode_id, None),
                 record_lost=self._record_lost,
+                damage=prologue[0].reason if prologue else None,
                 observations=[self._observation] if self._keep_observations and self._observation else [],
             )
-            self._record_lost = False
+            self._record_lost = None
             return None
         episode, self._open = self._open, None
         if episode is None or episode.report.episode_id != report.episode_id:
@@ -234,30 +375,34 @@ class EpisodeAssembler:
             elif report.episode_id == self._cut:  # the end of the episode lost data cut (counted then)
                 self.dropped_messages += self._span
                 self._span = 0
+            elif self._status_damage is not None:  # the end of an episode whose ACTIVE report was bad
+                self._count_drop(self._status_damage, self._span, report)
+                self._span = 0
+            elif self._prologue:  # the end of an episode that ran when the recording began
+                self._span = 0
             else:
-                self._count_drop("its start was not recorded", self._span)
+                self._count_drop("its start was not recorded", self._span, report)
                 self._span = 0
             return None
-        done = self._assemble(episode, report.outcome, self._span)
+        done = self._assemble(episode, report, self._span)
         self._span = 0
         return done
 
-    def _assemble(self, episode: _Open, outcome: str, messages: int) -> AssembledEpisode | None:
-        if episode.situation is None:
-            self._count_drop("no situation before it started", messages)
-            return None
-        if episode.record is None and episode.record_lost:
-            self._count_drop("its /episode record was lost", messages)
-            return None
-        if outcome in (es.COMPLETE, es.CUT) and not episode.eos:
-            self._count_drop("it ended without its <eos>", messages)
-            return None
-        situation = self._initial_situation(episode)
+    def _assemble(self, episode: _Open, report: es.EpisodeStatus, messages: int) -> AssembledEpisode | None:
+        reason = self._unusable(episode, report.outcome)
+        situation = None
+        if reason is None:
+            try:
+                situation = self._initial_situation(episode)
+            except GscanError:
+                reason = "its /situation is no gSCAN situation"
         record = episode.record or {}
         graph = _graph_fields(episode.graph_json)
         command = record.get("command") or graph.get("command") or episode.command
-        if command is None:
-            self._count_drop("no command or command graph before it started", messages)
+        if reason is None and command is None:
+            reason = "no command or command graph before it started"
+        if reason is not None:
+            self._count_drop(reason, messages, report)
             return None
         meta = dict(record.get("meta") or {})
         if record:
@@ -278,21 +423,30 @@ class EpisodeAssembler:
             "situation": situation,
             "meta": meta,
         }
-        if outcome != es.COMPLETE:
-            header["outcome"] = outcome
+        if report.outcome != es.COMPLETE:
+            header["outcome"] = report.outcome
         states = len(episode.actions) + 1
         observations = episode.observations if len(episode.observations) == states else None
         return AssembledEpisode(header, episode.actions, episode.graph_json,
-                                observations if self._keep_observations else None, outcome, messages)
+                                observations if self._keep_observations else None, report.outcome, messages,
+                                report)
+
+    @staticmethod
+    def _unusable(episode: _Open, outcome: str) -> str | None:
+        """Why an ended episode cannot be assembled from what it holds (None: it can)."""
+        if episode.damage is not None:
+            return episode.damage
+        if episode.situation is None:
+            return "no situation before it started"
+        if episode.record is None and episode.record_lost is not None:
+            return episode.record_lost
+        if outcome in (es.COMPLETE, es.CUT) and not episode.eos:
+            return "it ended without its <eos>"
+        return None
 
     def _initial_situation(self, episode: _Open) -> dict:
         """The situation JSON the episode started from (replaying what the newest one missed)."""
-        _, data = episode.situation
-        try:
-            fields = json.loads(self._text(data))
-        except json.JSONDecodeError as exc:
-            where = f"episode {episode.report.episode_id}"
-            raise DatasetFormatError(f"{where}: situation is not JSON ({exc.msg})") from None
+        _, fields = episode.situation
         if not episode.replay:
             return fields
         from gscan_ros.world.world import World
@@ -305,16 +459,7 @@ class EpisodeAssembler:
                 continue  # the world rejected it too and stayed where it was
         return world.snapshot().to_json()
 
-    def _take_record(self, data: bytes) -> None:
-        try:
-            record = json.loads(self._text(data))
-        except json.JSONDecodeError as exc:
-            raise DatasetFormatError(f"/episode record is not JSON ({exc.msg})") from None
-        if not isinstance(record, dict) or not isinstance(record.get("id"), str):
-            raise DatasetFormatError("/episode record must be a JSON object with a string 'id'")
-        version = record.get("version")
-        if not isinstance(version, int) or version > EPISODE_FORMAT_VERSION:
-            raise DatasetFormatError(f"/episode record version {version!r} is not supported")
+    def _take_record(self, record: dict) -> None:
         self._has_records = True
         if self._open is not None and self._open.report.episode_id == record["id"]:
             self._open.record = record  # a recorder writes it once it has seen the episode start
@@ -325,12 +470,13 @@ class EpisodeAssembler:
 
     def _drop(self, reason: str) -> None:
         if self._open is not None:
-            self._count_drop(reason, self._span)
+            self._count_drop(self._open.damage or reason, self._span, self._open.report)
             self._open, self._span = None, 0
 
-    def _count_drop(self, reason: str, messages: int) -> None:
+    def _count_drop(self, reason: str, messages: int, report: es.EpisodeStatus) -> None:
         self.dropped[reason] = self.dropped.get(reason, 0) + 1
         self.dropped_messages += messages
+        self.dropped_keys.add((report.episode_id, report.start_ns))
 
 
 def _graph_fields(graph_json: str | None) -> dict[str, str]:

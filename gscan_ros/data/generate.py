@@ -469,24 +469,27 @@ def _check_k_shot(k_shot: int, available: int) -> None:
 
 
 def _previous_dataset(out_dir: Path, overwrite: bool, fmt: str) -> list[Path]:
-    """What an earlier `generate` wrote to `out_dir` (dataset.txt, <split>/ bags, the
-    manifest); refused without `overwrite`, and also with it where something to be moved
-    away or written over is not a dataset's own (`_in_the_way`). A symbolic link where
-    the dataset goes is always refused."""
+    """What an earlier `generate` (or a recorder) wrote to `out_dir`: dataset.txt, <split>/
+    bags, the manifest, or a bag's own files when `out_dir` is itself a bag (every reader
+    would read that bag, not the new dataset); refused without `overwrite`, and also with
+    it where something to be moved away or written over is not a dataset's own
+    (`_in_the_way`). A symbolic link where the dataset goes is always refused."""
     if out_dir.exists() and not out_dir.is_dir():
         raise GscanError(f"--out {out_dir} is a file, not a directory")
     targets = [out_dir / name for name in (DATASET_FILE, DATASET_MANIFEST, *SPLIT_NAMES)]
     refuse_links(targets)
+    bag = bag_owned_files(out_dir) if is_bag(out_dir) else []
     found = [p for p in targets[:2] if p.is_file()] + [p for p in targets[2:] if is_bag(p)]
-    if found and not overwrite:
-        names = ", ".join(p.name for p in found[:3]) + (", ..." if len(found) > 3 else "")
+    if (found or bag) and not overwrite:
+        names = ", ".join((["a rosbag2 bag"] if bag else []) + [p.name for p in found[:3]])
+        names += ", ..." if len(found) > 3 else ""
         raise GscanError(f"--out {out_dir} already holds a dataset ({names}); pass --overwrite to replace it")
     written = targets[:1] if fmt == "txt" else targets[1:]
     for path in dict.fromkeys([*found, *written]):  # what is moved away or written over
         problem = _in_the_way(path)
         if problem:
             raise GscanError(f"{path} {problem}; refusing to overwrite it")
-    return found
+    return found + bag
 
 
 def _in_the_way(path: Path) -> str | None:

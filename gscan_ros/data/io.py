@@ -8,10 +8,11 @@ split without examples, with the message dataset.txt gives (`splits.require_spli
 """
 from __future__ import annotations
 
+import functools
 import json
 import os
 from pathlib import Path
-from typing import Iterable, Iterator, Mapping
+from typing import Callable, Iterable, Iterator, Mapping
 
 from gscan_ros.data.episode import Episode
 from gscan_ros.data.splits import require_splits
@@ -24,8 +25,10 @@ MANIFEST_VERSION = 1
 
 
 def is_bag(path: str | os.PathLike) -> bool:
-    """A rosbag2 bag is a directory with metadata.yaml."""
-    return (Path(path) / BAG_METADATA).is_file()
+    """A rosbag2 bag is a directory with metadata.yaml, or with the .mcap files of a
+    recorder killed before it wrote one (`bag_metadata.read_bag_info` reads both)."""
+    path = Path(path)
+    return (path / BAG_METADATA).is_file() or any(p.is_file() for p in path.glob("*.mcap"))
 
 
 def split_bags(path: str | os.PathLike) -> dict[str, Path]:
@@ -124,18 +127,48 @@ def iter_episodes(path: str | os.PathLike, splits: Iterable[str] | None = None) 
 
     Streams in file order; `example_id` is the example's index within its split.
     """
+    for load in iter_episode_loaders(path, splits):
+        yield load()
+
+
+def iter_episode_loaders(path: str | os.PathLike,
+                         splits: Iterable[str] | None = None) -> Iterator[Callable[[], Episode]]:
+    """`iter_episodes`, each episode made only when its item is called: a reader that skips
+    examples does not decode them, and a malformed example (a DatasetFormatError from its
+    call) leaves the stream going on to the next one."""
     wanted = None if splits is None else list(splits)
     bags = select_bags(path, wanted)
     if bags is not None:
         from gscan_ros.data.bag import iter_bag_episodes
 
         for bag in bags:
-            yield from iter_bag_episodes(bag, wanted)
+            for episode in iter_bag_episodes(bag, wanted):
+                yield functools.partial(_itself, episode)
         return
-    from gscan_ros.data.dataset import iter_examples
+    from gscan_ros.data.dataset import decode_example, iter_raw_examples
 
-    for split, index, example in iter_examples(path, wanted):
-        yield example.to_episode(split, index)
+    _require_dataset_txt(path)
+
+    def load(split: str, index: int, raw: dict) -> Episode:
+        return decode_example(split, index, raw).to_episode(split, index)
+
+    for split, index, raw in iter_raw_examples(path, wanted):
+        yield functools.partial(load, split, index, raw)
+
+
+def _require_dataset_txt(path: str | os.PathLike) -> None:
+    """dataset.txt is what is left to read at `path`: a folder without it holds no dataset
+    any reader knows, and the error says what was looked for."""
+    from gscan_ros.data.dataset import DATASET_FILE
+
+    root = Path(path)
+    if root.is_dir() and not (root / DATASET_FILE).exists():
+        raise DatasetFormatError(f"{root}: no dataset here (looked for {DATASET_FILE}, a rosbag2 bag: "
+                                 f"{BAG_METADATA} or .mcap files, and per-split bags: <split>/{BAG_METADATA})")
+
+
+def _itself(episode: Episode) -> Episode:
+    return episode
 
 
 def iter_test_episodes(path: str | os.PathLike, splits: list[str] | None = None) -> Iterator[Episode]:
@@ -158,6 +191,7 @@ def iter_test_episodes(path: str | os.PathLike, splits: list[str] | None = None)
     else:
         from gscan_ros.data.dataset import Example, iter_raw_examples
 
+        _require_dataset_txt(path)
         for split, index, raw in iter_raw_examples(path):
             if split in ALL_TEST_SPLITS:
                 yield Example.from_json(raw).to_episode(split, index)

@@ -8,7 +8,7 @@ command/target/layout sampling, the planner); this module only picks the item.
 from __future__ import annotations
 
 import itertools
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -22,26 +22,41 @@ from gscan_ros.world.types import GRID_SIZE, SUPPORTED_GRID_SIZES
 class DatasetSource:
     """Episodes `index`, `index + 1`, ... of one split of a dataset.txt or bag (wraps around).
 
-    The file is streamed once, in order; it is reopened only when the split runs out.
+    The file is streamed once, in order; it is reopened only when the split runs out or
+    reading it failed. A malformed example fails its own `next()` with the reason, and
+    the next call serves the example after it.
     """
 
     path: str
     split: str
     index: int = 0
-    _episodes: Iterator[Episode] | None = field(default=None, init=False, repr=False)
+    _position: int = field(init=False, repr=False)  # the example of the split the next call serves
+    _loaders: Iterator[Callable[[], Episode]] | None = field(default=None, init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self._position = self.index
 
     def next(self) -> Episode:
-        from gscan_ros.data.io import iter_episodes
+        load = self._next_loader()
+        self._position += 1  # also past a malformed example: its error is this call's
+        return load()
 
-        if self._episodes is None:
-            self._episodes = itertools.islice(iter_episodes(self.path, splits=[self.split]), self.index, None)
-        episode = next(self._episodes, None)
-        if episode is None:  # past the end of the split: start over
-            self._episodes = iter(iter_episodes(self.path, splits=[self.split]))
-            episode = next(self._episodes, None)
-            if episode is None:
-                raise DatasetFormatError(f"{self.path}: split {self.split!r} has no examples")
-        return episode
+    def _next_loader(self) -> Callable[[], Episode]:
+        from gscan_ros.data.io import iter_episode_loaders
+
+        try:
+            if self._loaders is None:
+                self._loaders = itertools.islice(iter_episode_loaders(self.path, [self.split]), self._position, None)
+            load = next(self._loaders, None)
+            if load is None:  # past the end of the split: start over
+                self._loaders, self._position = iter_episode_loaders(self.path, [self.split]), 0
+                load = next(self._loaders, None)
+                if load is None:
+                    raise DatasetFormatError(f"{self.path}: split {self.split!r} has no examples")
+        except Exception:
+            self._loaders = None  # a failed stream is closed: the next call reopens it at the same example
+            raise
+        return load
 
     def describe(self, episode: Episode) -> str:
         return f"{self.path} split {self.split!r} example {episode.example_id}"

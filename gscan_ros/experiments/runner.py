@@ -3,17 +3,18 @@
 1. the dataset is generated once under the data root (`generate --format mcap`, then the
    decode-once caches of train and dev are built), guarded by a lock file; `recipe.json`
    marks it complete;
-2. the run is trained in `<results>/<run>/` (`train`, `--resume` from `last.pt` when it
-   has one); a run is trained when metrics.jsonl's last "end" reached the budget;
+2. the run is trained in `<results>/<run>/` (`train`, `--resume` from `last.pt`, or the
+   `last.prev.pt` before it, when it has one); a run is trained when metrics.jsonl's last
+   "end" reached the budget;
 3. `model.pt` is evaluated closed loop on the run's test splits (`evaluate`) and
    `<run>/results.json` gets the splits plus the run's metadata.
 
 Runs that only need evaluating go first, then half-trained ones, then new ones
 (`state.work_order`). Each step is a `gscan-ros` subprocess, so a killed runner loses at most the updates since
-the last checkpoint. All state comes from the files: a run's `.lock` (host, runner PID,
-child PID) keeps two runners from training it at once and is stale once both processes
-are gone; a run whose config.yaml no longer matches the plan is "stale" and left alone
-unless `restart_stale`.
+the last checkpoint. All state comes from the files: a run's `.lock` (an flock, and the
+host, runner PID and child PID) keeps two runners from training it at once and is free
+once both processes are gone; a run whose config.yaml no longer matches the plan, or
+that trained on another dataset folder, is "stale" and left alone unless `restart_stale`.
 """
 from __future__ import annotations
 
@@ -46,6 +47,7 @@ from gscan_ros.experiments.state import (
     training_left,
     work_order,
 )
+from gscan_ros.outputs import replace_durably
 from gscan_ros.runtime import mkl_shim_env
 from gscan_ros.training.metrics_log import read_events
 from gscan_ros.user_files import read_json
@@ -97,7 +99,7 @@ class Runner:
         return self.plan.results / spec.name
 
     def states(self) -> list[RunState]:
-        return [run_state(self.run_dir(s), s, self.configs[s.name]) for s in self.share]
+        return [run_state(self.run_dir(s), s, self.configs[s.name], self.plan.data_root) for s in self.share]
 
     def status_lines(self, states: list[RunState]) -> list[str]:
         """A summary line, the datasets, and one line per run."""
@@ -181,7 +183,7 @@ class Runner:
             return False
         try:
             cfg = self.configs[spec.name]
-            state = run_state(run_dir, spec, cfg, ignore_lock=True)
+            state = run_state(run_dir, spec, cfg, self.plan.data_root, ignore_lock=True)
             if state.status == "done":
                 return True
             data_dir = self._dataset(spec.data)
@@ -232,7 +234,7 @@ class Runner:
         }
         tmp = run_dir / "results.json.tmp"
         tmp.write_text(json.dumps(doc, indent=2) + "\n")
-        os.replace(tmp, run_dir / "results.json")
+        replace_durably(tmp, run_dir / "results.json")
         shutil.rmtree(scratch)
 
     def _dataset(self, recipe: DataRecipe) -> Path:

@@ -1,8 +1,9 @@
 """Where each run of a plan stands, from its files alone: its lock, metrics.jsonl,
-config.yaml, last.pt and results.json (`STATES`), and the order the runner works in.
+config.yaml, its checkpoints and results.json (`STATES`), and the order the runner works in.
 
-A run whose config.yaml no longer matches the plan is "stale"; the budget and the
-machine (`UNTRACKED_KEYS`) may change without that.
+A run whose config.yaml no longer matches the plan (`training.config.config_changes`: the
+budget and the machine may change) or that trained or was evaluated on another dataset
+folder than the plan's is "stale".
 """
 from __future__ import annotations
 
@@ -17,8 +18,6 @@ from gscan_ros.experiments.plan import DataRecipe, RunSpec
 from gscan_ros.training.metrics_log import read_events
 from gscan_ros.user_files import read_json, read_yaml
 
-# Config keys that may change without making a run stale: the budget and the machine.
-UNTRACKED_KEYS = ("max_updates", "max_minutes", "threads")
 STATES = ("done", "evaluate", "running", "resume", "new", "stale")
 LOCK = ".lock"
 DATASET_DONE = "recipe.json"
@@ -93,49 +92,35 @@ def training_left(states: list[RunState]) -> tuple[float, list[str]]:
 
 
 def config_changes(run_dir: Path, cfg, events: list[dict] | None = None) -> list[str]:
-    """Keys where the run's config.yaml differs from the plan's config: budget and threads
-    aside, model settings compared with their defaults filled in. A field added to
-    TrainConfig since the run started counts as its default there (the behaviour the run
-    had); keys TrainConfig no longer has are ignored. Empty for a run without config.yaml.
-    `events` are the run's metrics.jsonl records when the caller has read them already."""
+    """Keys where the run's config.yaml differs from the plan's config
+    (`training.config.config_changes`); empty for a run without config.yaml. `events` are
+    the run's metrics.jsonl records when the caller has read them already."""
+    from gscan_ros.training.config import config_changes as saved_config_changes
+
     path = run_dir / "config.yaml"
     if not path.is_file():
         return []
-    old = read_yaml(path, str(path), ExperimentError) or {}
-    new = cfg.to_dict()
-    defaults = type(cfg)().to_dict()
-    keys = sorted(set(new) - set(UNTRACKED_KEYS) - {"model"})
-    changed = [k for k in keys if old.get(k, defaults[k]) != new[k]]
+    saved = read_yaml(path, str(path), ExperimentError) or {}
     if events is None:
         events = read_events(run_dir / "metrics.jsonl")
-    if "screen_seeds" in changed and _screen_kept(events, new["screen_seeds"]):
-        changed.remove("screen_seeds")
-    old_model, new_model = _model_settings(old), cfg.model_config().to_dict()
-    if old_model is None:
-        return changed + ["model"]
-    return changed + [f"model.{k}" for k in sorted(set(old_model) & set(new_model)) if old_model[k] != new_model[k]]
+    return saved_config_changes(saved, cfg, events)
 
 
-def _screen_kept(events: list[dict], screen_seeds: int) -> bool:
-    """The run's seed screen passed at a candidate that `screen_seeds` candidates also
-    reach, so screening with that many would have kept the same seed (the same run)."""
-    passed = [e["candidate"] for e in events if e.get("event") == "screen" and e.get("passed")]
-    return bool(passed) and passed[0] < max(screen_seeds, 1)
+def data_change(data_dir: Path, events: list[dict], results: dict | None) -> str | None:
+    """How the dataset folders the run trained on (its metrics.jsonl `start` records) and
+    was evaluated on (results.json) differ from the plan's `data_dir`, compared by folder
+    name (`<dataset>-<hash of its flags>`, whatever the data root); None when they do not,
+    or when the run's files do not name one (runs from before the `start` records did)."""
+    used = [e["data"] for e in events if e.get("event") == "start" and e.get("data")]
+    used += [((results or {}).get("data") or {}).get("dir")]
+    others = sorted({Path(d).name for d in used if d} - {data_dir.name})
+    return f"data changed: {', '.join(others)} -> {data_dir.name}" if others else None
 
 
-def _model_settings(config: dict) -> dict | None:
-    """Every model setting of a saved config.yaml (None if they no longer load)."""
-    from gscan_ros.training.config import TrainConfig
+def run_state(run_dir: Path, spec: RunSpec, cfg, data_root: Path, ignore_lock: bool = False) -> RunState:
+    """Where a run stands, from its files alone; `data_root` holds the plan's datasets."""
+    from gscan_ros.training.trainer import RunFiles
 
-    try:
-        train = TrainConfig(model_kind=config.get("model_kind", "compositional"), model=dict(config.get("model") or {}))
-        return train.model_config().to_dict()
-    except GscanError:
-        return None
-
-
-def run_state(run_dir: Path, spec: RunSpec, cfg, ignore_lock: bool = False) -> RunState:
-    """Where a run stands, from its files alone."""
     events = read_events(run_dir / "metrics.jsonl")
     state = RunState(spec, "new", trained_updates(events), cfg.max_updates,
                      seconds_per_update=seconds_per_update(events, cfg.batch_size))
@@ -143,15 +128,20 @@ def run_state(run_dir: Path, spec: RunSpec, cfg, ignore_lock: bool = False) -> R
     if holder is not None:
         state.status, state.detail = "running", _holder_text(holder, run_dir / LOCK)
         return state
+    results = _results(run_dir)
     changed = config_changes(run_dir, cfg, events)
+    reasons = [f"config changed: {', '.join(changed)}"] if changed else []
+    data = data_change(spec.data.directory(data_root), events, results)
+    if data is not None:
+        reasons.append(data)
     end = finished_end(events, cfg)
-    if changed:
-        state.status, state.detail = "stale", f"config changed: {', '.join(changed)}"
-    elif end is not None and _evaluated(run_dir, spec, end):
+    if reasons:
+        state.status, state.detail = "stale", "; ".join(reasons)
+    elif end is not None and _evaluated(results, spec, end):
         state.status = "done"
     elif end is not None:
         state.status = "evaluate"
-    elif (run_dir / "last.pt").exists():
+    elif RunFiles(run_dir).resume_point() is not None:
         state.status = "resume"
     elif state.updates:
         state.detail = f"no last.pt: starts over, these logged updates kept in {REPLACED}/"
@@ -181,13 +171,20 @@ def archive_attempt(run_dir: Path) -> Path | None:
     return archive
 
 
-def _evaluated(run_dir: Path, spec: RunSpec, end: dict) -> bool:
+def _results(run_dir: Path) -> dict | None:
+    """The run's results.json; None when it has none (or none that reads)."""
     try:
         doc = read_json(run_dir / "results.json", f"{run_dir}/results.json", ExperimentError)
     except ExperimentError:
+        return None
+    return doc if isinstance(doc, dict) else None
+
+
+def _evaluated(results: dict | None, spec: RunSpec, end: dict) -> bool:
+    if results is None:
         return False
-    ev = doc.get("evaluation") or {}
-    return (doc.get("updates") == end["step"] and ev.get("splits") == list(spec.splits)
+    ev = results.get("evaluation") or {}
+    return (results.get("updates") == end["step"] and ev.get("splits") == list(spec.splits)
             and ev.get("max_examples") == spec.eval_max_examples)
 
 

@@ -28,10 +28,11 @@ from gscan_ros.errors import CheckpointError, LexiconError, quoted, shortened
 from gscan_ros.language.lexicon import Lexicon
 from gscan_ros.model.auxloss import AuxLoss
 from gscan_ros.model.compositional import CompositionalNetwork
-from gscan_ros.model.config import AuxLossConfig, LCGNConfig, ModelConfig, Seq2SeqConfig
+from gscan_ros.model.config import INIT_SETTINGS, AuxLossConfig, LCGNConfig, ModelConfig, Seq2SeqConfig
 from gscan_ros.model.lcgn import LCGN
 from gscan_ros.model.modules import ModuleTable
 from gscan_ros.model.seq2seq import Seq2Seq
+from gscan_ros.outputs import replace_durably
 
 FORMAT = 1
 MODEL_CLASSES = {model.kind: (model, config) for model, config in [
@@ -65,6 +66,13 @@ def build_model(kind: str, model_config: dict, vocabulary: dict) -> nn.Module:
     return model_class(config_class.from_dict(model_config), list(vocabulary["tokens"]))
 
 
+def parameter_count(model: nn.Module) -> int:
+    """The parameters a model computes with: a compositional network's stacked entries past
+    a module's own slots (`WordModuleBank.unused_parameters`) do not count."""
+    total = sum(p.numel() for p in model.parameters())
+    return total - model.bank.unused_parameters() if model.kind == "compositional" else total
+
+
 def model_vocabulary(model: nn.Module) -> dict:
     if model.kind == "compositional":
         return {"modules": model.table.to_list()}
@@ -88,8 +96,18 @@ def checkpoint_dict(model: nn.Module, *, parser: str, lexicon: Lexicon, step: in
     }
 
 
-def save_checkpoint(path: str | os.PathLike, ckpt: dict) -> None:
-    """Write atomically (temp file + rename), so an interrupted save never corrupts `path`."""
+def previous_checkpoint(path: str | os.PathLike) -> Path:
+    """Where `save_checkpoint(path, ..., keep_previous=True)` keeps the checkpoint it replaced
+    (`last.pt` -> `last.prev.pt`)."""
+    path = Path(path)
+    return path.with_name(f"{path.stem}.prev{path.suffix}")
+
+
+def save_checkpoint(path: str | os.PathLike, ckpt: dict, keep_previous: bool = False) -> None:
+    """Write to a temp file and rename it into place durably (`replace_durably`), so neither
+    an interrupted save nor a crash leaves `path` half written. `keep_previous`: the
+    checkpoint `path` held moves to `previous_checkpoint(path)`, one generation back for a
+    reader that finds `path` damaged or missing all the same."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(path.suffix + ".tmp")
@@ -99,7 +117,7 @@ def save_checkpoint(path: str | os.PathLike, ckpt: dict) -> None:
         tmp.unlink(missing_ok=True)
         reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc).strip().splitlines()[-1]
         raise CheckpointError(f"cannot write checkpoint {str(path)!r}: {shortened(reason)}") from None
-    os.replace(tmp, path)
+    replace_durably(tmp, path, keep_old_as=previous_checkpoint(path) if keep_previous else None)
 
 
 def read_checkpoint(path: str | os.PathLike) -> dict:
@@ -197,17 +215,19 @@ def _load_problem(exc: Exception) -> str:
 def restore_model(ckpt: dict, model: nn.Module | None = None) -> nn.Module:
     """Load the checkpoint's weights into `model` (built from the checkpoint when None).
 
-    With a given model, its kind, config and vocabulary must equal the checkpoint's.
+    With a given model, its kind, config (but the settings of the initialisation alone,
+    `INIT_SETTINGS`) and vocabulary must equal the checkpoint's.
     """
     if model is None:
         model = build_model(ckpt["kind"], ckpt["model_config"], ckpt["vocabulary"])
     else:
         if model.kind != ckpt["kind"]:
             raise CheckpointError(f"checkpoint holds a {ckpt['kind']} model, not a {model.kind} model")
-        # settings added after the checkpoint was written take their defaults
+        # settings added after the checkpoint was written take their defaults; those of the
+        # initialisation alone do not matter here
         saved = type(model.cfg).from_dict(ckpt["model_config"]).to_dict()
-        if model.cfg.to_dict() != saved:
-            diff = sorted(k for k, v in model.cfg.to_dict().items() if saved.get(k) != v)
+        diff = sorted(k for k, v in model.cfg.to_dict().items() if saved.get(k) != v and k not in INIT_SETTINGS)
+        if diff:
             raise CheckpointError(f"checkpoint model config differs from the model's in {diff}")
         if model_vocabulary(model) != ckpt["vocabulary"]:
             raise CheckpointError(_vocabulary_diff(model_vocabulary(model), ckpt["vocabulary"]))

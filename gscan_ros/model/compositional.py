@@ -50,6 +50,16 @@ def _uniform(shape: Sequence[int], fan_in: int) -> nn.Parameter:
     return nn.Parameter(torch.empty(*shape).uniform_(-bound, bound))
 
 
+def _uniform_rows(shape: Sequence[int], fan_ins: Sequence[int]) -> nn.Parameter:
+    """`_uniform` with fan-in `fan_ins[i]` for row i (a module's or unit's own layer). The
+    draws run in row order, so rows of one fan-in give `_uniform`'s values bit for bit."""
+    weights = torch.empty(*shape)
+    for row, fan_in in zip(weights, fan_ins):
+        bound = 1.0 / math.sqrt(fan_in)
+        row.uniform_(-bound, bound)
+    return nn.Parameter(weights)
+
+
 class WordModuleBank(nn.Module):
     """Parameters of every word module, stacked: attention per (module, head) 'unit', GRU and
     output layer per module. Shapes (U units, M modules, S max slots, A att_dim, H rnn_dim):
@@ -60,6 +70,10 @@ class WordModuleBank(nn.Module):
     gru_x{l} [M, in_l, 3H], gru_h{l} [M, H, 3H] (+ biases)  gates r, z, n as in torch.nn.GRU
     state_w [M, S*L*H, H] / state_b [M, H]           children's states -> GRU input (pass_state)
     out_w [M, H, n_actions] / out_b [M, n_actions]   action logits (read at the root only)
+
+    A module with fewer slots than S leaves the stacked entries of the slots past its own
+    unread (`unused_parameters`); its `att_out_*` and `state_*` are initialised for its own
+    slots (`ModelConfig.init_fan_in`).
     """
 
     def __init__(self, cfg: ModelConfig, table: ModuleTable):
@@ -69,23 +83,41 @@ class WordModuleBank(nn.Module):
         S = max((s.slots for s in table.specs), default=1)
         A, H, L, Fd = cfg.att_dim, cfg.rnn_dim, cfg.rnn_layers, cfg.feature_dim
         self.max_slots = S
+        self.module_slots = [spec.slots for spec in table.specs]
+        self.unit_slots = [spec.slots for spec in table.specs for _ in range(spec.num_heads)]
+        own = cfg.init_fan_in == "module"  # else every module as the widest
         if cfg.uses_attention:
+            out_fan_ins = [((slots if own else S) + 1) * A for slots in self.unit_slots]
             self.att_feat_w = _uniform((U, S, Fd, A), Fd)
             self.att_feat_b = _uniform((U, S, A), Fd)
             self.att_state_w = _uniform((U, L * H, A), L * H)
             self.att_state_b = _uniform((U, A), L * H)
-            self.att_out_w = _uniform((U, S + 1, A), (S + 1) * A)
-            self.att_out_b = _uniform((U,), (S + 1) * A)
+            self.att_out_w = _uniform_rows((U, S + 1, A), out_fan_ins)
+            self.att_out_b = _uniform_rows((U,), out_fan_ins)
         in0 = Fd + (H if cfg.passes_state else 0)  # weighted (or, without attention, summed) features
         self.gru_x = nn.ParameterList(_uniform((M, in0 if layer == 0 else H, 3 * H), H) for layer in range(L))
         self.gru_h = nn.ParameterList(nn.Parameter(_orthogonal_gates(M, H)) for _ in range(L))
         self.gru_bx = nn.ParameterList(_uniform((M, 3 * H), H) for _ in range(L))
         self.gru_bh = nn.ParameterList(_uniform((M, 3 * H), H) for _ in range(L))
         if cfg.passes_state:
-            self.state_w = _uniform((M, S * L * H, H), S * L * H)
-            self.state_b = _uniform((M, H), S * L * H)
+            state_fan_ins = [(slots if own else S) * L * H for slots in self.module_slots]
+            self.state_w = _uniform_rows((M, S * L * H, H), state_fan_ins)
+            self.state_b = _uniform_rows((M, H), state_fan_ins)
         self.out_w = _uniform((M, H, cfg.num_actions), H)
         self.out_b = _uniform((M, cfg.num_actions), H)
+
+    def unused_parameters(self) -> int:
+        """Entries stacked for slots past a module's own (zero in a table of one arity):
+        `att_feat_*` and `att_out_w` per unit, `state_w` per module. They never reach an
+        output nor get a gradient."""
+        cfg, S = self.cfg, self.max_slots
+        A, H, L, Fd = cfg.att_dim, cfg.rnn_dim, cfg.rnn_layers, cfg.feature_dim
+        unused = 0
+        if cfg.uses_attention:
+            unused += sum(S - slots for slots in self.unit_slots) * (Fd * A + A + A)
+        if cfg.passes_state:
+            unused += sum(S - slots for slots in self.module_slots) * L * H * H
+        return unused
 
 
 def _orthogonal_gates(modules: int, hidden: int) -> torch.Tensor:

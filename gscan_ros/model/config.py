@@ -19,6 +19,10 @@ MESSAGES = ("attention", "state", "attention+state")
 ATTENTION_STATES = ("broadcast", "add")
 SIZE_MAPS = ("softmax", "minmax")
 OVERLAPS = ("minmax", "cosine")
+INIT_FAN_INS = ("module", "table")
+# Model settings that shape only the initial weights: a loaded checkpoint's weights replace
+# them, so loading into a model does not compare them.
+INIT_SETTINGS = ("init_fan_in",)
 
 
 class SerializableConfig:
@@ -101,6 +105,14 @@ class ModelConfig(SerializableConfig):
     (1/√cells against a one-hot map)."""
     num_actions: int = len(Action)
     """Output classes: the six gSCAN actions plus EOS, ids = `Action` values."""
+    init_fan_in: str = "module"
+    """The fan-in that scales the uniform initialisation of a module's attention output layer
+    (`att_out_*`) and child-state layer (`state_*`): 'module', its own argument slots, as a
+    Linear of that module's size is initialised (CG builds one per module); 'table', the
+    widest module's slots, the initialisation of runs before 2026-12-06. The two differ only
+    in a table whose modules take different numbers of arguments (the constituency and
+    dependency parses, not the semantic one), and only in the initial weights: a loaded
+    checkpoint's weights replace them (`INIT_SETTINGS`)."""
 
     def __post_init__(self) -> None:
         if self.message not in MESSAGES:
@@ -111,6 +123,8 @@ class ModelConfig(SerializableConfig):
             raise ValueError(f"size_map must be one of {SIZE_MAPS}, got {quoted(self.size_map)}")
         if self.overlap not in OVERLAPS:
             raise ValueError(f"overlap must be one of {OVERLAPS}, got {quoted(self.overlap)}")
+        if self.init_fan_in not in INIT_FAN_INS:
+            raise ValueError(f"init_fan_in must be one of {INIT_FAN_INS}, got {quoted(self.init_fan_in)}")
         if self.attention_state == "add" and not self.uses_attention:
             raise ValueError("attention_state='add' needs attention maps; message='state' has none")
         check_settings(self, ("grid_size", "in_channels", "cnn_channels", "att_dim", "rnn_layers", "rnn_dim",

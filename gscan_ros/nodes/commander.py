@@ -72,7 +72,7 @@ class Outcome(enum.StrEnum):
     """How an episode ended, as the stack reported it."""
 
     SUCCEEDED = "succeeded"  # the policy ended it with its own <eos>
-    MAX_STEPS = "max_steps"  # the policy forced <eos> after max_steps actions
+    MAX_STEPS = "max_steps"  # the policy forced <eos>: at max_steps, after a failed step or at step_timeout
     PREEMPTED = "preempted"  # another command or a world reset replaced it (`reason` says which)
     REJECTED = "rejected"  # the parser (or the policy) refused the command
     TIMEOUT = "timeout"  # no end within the timeout

@@ -18,7 +18,7 @@ from typing import TypeVar
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rcl_interfaces.msg import IntegerRange, ParameterDescriptor, SetParametersResult
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
@@ -89,12 +89,15 @@ HARDWARE_ID = "gscan_ros"  # a DiagnosticStatus's hardware_id: these nodes drive
 
 
 def describe(text: str, *, read_only: bool = False, int_range: tuple[int, int] | None = None,
-             constraints: str = "") -> ParameterDescriptor:
-    """Parameter descriptor with a description and, for integers, the allowed range
+             float_range: tuple[float, float] | None = None, constraints: str = "") -> ParameterDescriptor:
+    """Parameter descriptor with a description and, for numbers, the allowed range
     (`ros2 param describe` shows them; rclpy refuses a value outside the range)."""
     descriptor = ParameterDescriptor(description=text, read_only=read_only, additional_constraints=constraints)
     if int_range is not None:
         descriptor.integer_range = [IntegerRange(from_value=int_range[0], to_value=int_range[1], step=1)]
+    if float_range is not None:
+        descriptor.floating_point_range = [FloatingPointRange(from_value=float(float_range[0]),
+                                                              to_value=float(float_range[1]), step=0.0)]
     return descriptor
 
 
@@ -213,23 +216,30 @@ class StatusReporter:
 CallbackT = TypeVar("CallbackT", bound=Callable[..., None])
 
 
-def guarded(callback: CallbackT) -> CallbackT:
-    """Decorate a node callback so no input can kill the node (the node has `self.status`).
+def report_failure(node: Node, exc: Exception, where: str, context: str = "") -> None:
+    """Report an exception a node caught in `where` and serves on (the node has `status`).
 
-    A `GscanError` is a rejected input: its message goes to `status` (WARN). Anything else
-    is a bug in gscan_ros: the traceback goes to the log and a short line to `status`
-    (ERROR), and the node keeps serving the next message.
+    A `GscanError` is a rejected input: `context` and its message go to `status` (WARN).
+    Anything else is a bug in gscan_ros: the traceback goes to the log and a short line to
+    `status` (ERROR).
     """
+    if isinstance(exc, GscanError):
+        node.status.reject(f"{context}{exc}")
+        return
+    node.get_logger().error("".join(traceback.format_exception(exc)))
+    node.status.error(f"internal error in {where}: {type(exc).__name__}: {exc}")
+
+
+def guarded(callback: CallbackT) -> CallbackT:
+    """Decorate a node callback so no input can kill the node (`report_failure`): a rejected
+    input or a bug is one `status` line, and the node keeps serving the next message."""
 
     @functools.wraps(callback)
     def guarded_callback(self, *args, **kwargs):
         try:
             return callback(self, *args, **kwargs)
-        except GscanError as exc:
-            self.status.reject(str(exc))
         except Exception as exc:  # noqa: BLE001 - a node must survive its own bugs
-            self.get_logger().error(traceback.format_exc())
-            self.status.error(f"internal error in {callback.__name__}: {type(exc).__name__}: {exc}")
+            report_failure(self, exc, callback.__name__)
         return None
 
     return guarded_callback  # type: ignore[return-value]

@@ -9,11 +9,19 @@ metadata, and a flush to disk when an episode ends: a killed recorder leaves a b
 reads up to its last ended episode. Nothing is buffered beyond the MCAP chunk in
 progress, so memory does not grow with what is published. All three parameters can be
 changed while recording.
+
+A bag counts the episodes whose ACTIVE report it holds. One that was running when the
+bag began (the recorder joined late, or `bag_dir` changed) is in it only from there on:
+its end is recorded but not counted, and readers take it as the bag's prologue. One still
+running when the bag closes (a `bag_dir` change, the recorder's shutdown) gets a
+PREEMPTED report from the recorder, "the recording stopped", so the bag holds no
+episode without an end (docs/bags.md "Episodes").
 """
 from __future__ import annotations
 
 import json
 import time
+from pathlib import Path
 
 from rclpy.node import Node
 
@@ -22,9 +30,9 @@ from gscan_ros import interface
 from gscan_ros.data.bag import LIVE_SPLIT, BagWriter
 from gscan_ros.data.bag_metadata import EPISODE_FORMAT_VERSION
 from gscan_ros.data.bag_schema import EPISODE, TOPICS
-from gscan_ros.errors import GscanError
+from gscan_ros.errors import DatasetFormatError, GscanError
 from gscan_ros.nodes.common import StatusReporter, describe, guarded, msg_class, qos_profile, run, validated
-from msg_adapters import cdr_to_episode_status, text_to_cdr
+from msg_adapters import cdr_to_episode_status, episode_status_to_cdr, text_to_cdr
 
 READY_LOG = "world state received: recording episodes"
 # The stack's topics the recorder takes (`episode` is its own to write).
@@ -42,7 +50,8 @@ class EpisodeRecorderNode(Node):
         self.declare_parameter("overwrite", False, describe("replace an existing bag at bag_dir (read when a bag "
                                                             "is opened)"))
         self.status = StatusReporter(self, counters=lambda: {"episodes recorded": self.episodes})
-        self._writer = self._open_bag({})
+        self._running: dict[str, es.EpisodeStatus] = {}  # ACTIVE reports in the current bag whose end has not come
+        self._writer = self._open_bag(self._bag_path({}), {})
         self._next_writer: BagWriter | None = None  # opened by a bag_dir change, taken after the set
         self._seen: set[str] = set()  # topics heard from (ready once the world state is among them)
         # The newest message of each latched topic: a new bag starts with the current state,
@@ -72,22 +81,30 @@ class EpisodeRecorderNode(Node):
         return {interface.SITUATION.name, interface.OBSERVATION.name} <= self._seen
 
     # -- parameters --------------------------------------------------------------------
-    def _open_bag(self, changes: dict) -> BagWriter:
-        bag_dir = changes.get("bag_dir", self.get_parameter("bag_dir").value)
+    def _open_bag(self, bag_dir: Path, changes: dict) -> BagWriter:
         overwrite = changes.get("overwrite", self.get_parameter("overwrite").value)
-        return BagWriter(bag_dir or time.strftime("gscan_episodes_%Y%m%d_%H%M%S"), overwrite=overwrite).open()
+        return BagWriter(bag_dir, overwrite=overwrite).open()
+
+    def _bag_path(self, changes: dict) -> Path:
+        bag_dir = changes.get("bag_dir", self.get_parameter("bag_dir").value)
+        return Path(bag_dir or time.strftime("gscan_episodes_%Y%m%d_%H%M%S"))
 
     def _check_parameters(self, changes: dict) -> None:
-        """A new bag_dir is opened here, so a directory that cannot take a bag is refused with the reason."""
+        """A new bag_dir is opened here, so a directory that cannot take a bag is refused with the
+        reason; so is the bag being recorded (opening it again would wipe it under its writer)."""
         self._next_writer = None
         if "bag_dir" in changes:
-            self._next_writer = self._open_bag(changes)
+            bag_dir = self._bag_path(changes)
+            if bag_dir.resolve() == self._writer.bag_dir.resolve():
+                raise DatasetFormatError(f"{self._writer.bag_dir} is the bag being recorded")
+            self._next_writer = self._open_bag(bag_dir, changes)
 
     @guarded
     def _apply_parameters(self, parameters: list) -> None:
         names = {p.name for p in parameters}
         if self._next_writer is not None:
             old, self._writer, self._next_writer = self._writer, self._next_writer, None
+            self._stop_running(old, f"the recording moved to {self._writer.bag_dir}")
             old.close()
             for endpoint, data, info in list(self._latched.values()):
                 self._write(endpoint, data, info)
@@ -136,17 +153,35 @@ class EpisodeRecorderNode(Node):
             self.status.reject(f"unreadable episode report: {exc}")
             return
         if report.outcome == es.ACTIVE:
+            self._running[report.episode_id] = report
             record = {"version": EPISODE_FORMAT_VERSION, "id": report.episode_id, "split": LIVE_SPLIT,
                       "meta": {"recorded_by": self.get_fully_qualified_name()}}
             self._writer.write_message(EPISODE.name, EPISODE.msg_type, text_to_cdr(json.dumps(record)), time.time_ns(),
                                        publish_ns)
+            return
+        started = self._running.pop(report.episode_id, None)
+        if started is None and report.outcome != es.REJECTED:  # a refused command has no ACTIVE report
+            self.status.info(f"not counting episode {report.episode_id} ({report.outcome}): it started before "
+                             f"{self._writer.bag_dir} did")
             return
         number = self._writer.episodes_written
         self._writer.count_episode(LIVE_SPLIT if report.outcome == es.COMPLETE else None)
         self._writer.flush()
         self.status.info(f"recorded episode {number} ({report.episode_id}: {report.outcome})")
 
+    def _stop_running(self, writer: BagWriter, why: str) -> None:
+        """End the episodes still running in `writer`'s bag, which closes now, as preempted."""
+        for active in self._running.values():
+            report = es.EpisodeStatus(active.episode_id, active.start_ns, es.PREEMPTED, f"{active.text!r}: {why}")
+            now = time.time_ns()
+            writer.write_message(interface.EPISODE_STATUS.bag_topic, interface.EPISODE_STATUS.type,
+                                 episode_status_to_cdr(report), now, max(now, writer.last_publish_ns + 1))
+            writer.count_episode(None)
+            self.status.info(f"recorded episode {active.episode_id} as preempted: {why}")
+        self._running.clear()
+
     def destroy_node(self) -> None:
+        self._stop_running(self._writer, "the recording stopped")
         self._writer.close()
         super().destroy_node()
 

@@ -1,24 +1,30 @@
-"""policy_node: follows the latest command graph in lock-step with the world simulator.
+"""policy_node: follows every command graph in lock-step with the world simulator.
 
 Episode protocol (docs/ros.md "Lock-step"):
 - a new `command_graph` resets the model's module states and starts an episode; one
-  still running is preempted. Every episode is reported on `episode_status`
+  still running is preempted. Graphs that come while the node is busy are queued and
+  taken in order. Every graph the node receives is reported on `episode_status`
   (actionlib_msgs/GoalStatus): ACTIVE before its first action, then how it ended
-  (SUCCEEDED: the model's `<eos>`; ABORTED: cut at `max_steps`; PREEMPTED: a new command
-  or a world reset; REJECTED: a graph it cannot follow), after its last action, so the
-  actions published between the two are exactly the episode's (docs/ros.md "Episodes"). A graph published before this
-  node started (the latched copy a restarted policy receives) is not acted on: a
-  command is an instruction for the moment it is given;
+  (SUCCEEDED: the model's `<eos>`; ABORTED: an `<eos>` the node forced, at `max_steps`,
+  after a failed step, or when no observation came within `step_timeout`; PREEMPTED: a
+  new command or a world reset; REJECTED: a graph it cannot follow), after its last
+  action, so the actions published between the two are exactly the episode's
+  (docs/ros.md "Episodes"). A graph published before this node started (the latched copy
+  a restarted policy receives) or before the world's last reset is REJECTED: a command
+  is an instruction for the moment it is given;
 - the policy acts on the newest observation, publishes action t, and then acts only
   on an observation *published after* action t. "After" compares the observation's
   DDS source timestamp with the time action t was sent, so a reply that was already
-  in flight, or a latched copy, is never mistaken for the result of action t;
-- the episode ends with `<eos>`, either the model's or forced after `max_steps`, or
-  is preempted by a world reset (`world_reset`): the policy sends nothing more for it,
-  and ignores observations, graphs and replies from before the reset.
+  in flight, or a latched copy, is never mistaken for the result of action t (the
+  clocks of the two hosts must agree; `step_timeout` ends an episode that waits in vain);
+- the episode ends with `<eos>`, the model's or one the node forces, or is preempted by
+  a world reset (`world_reset`, whose DDS source timestamp R is the reset's time): the
+  policy sends nothing more for it, and ignores observations, graphs and replies
+  published before R.
 Each step also publishes every word module's attention map on `attention/<word>` and, for
 a command with a size word, the size-ordering map on `attention/size_ordering`, each with
-the header (stamp, grid frame) of the observation it was computed from.
+the header (stamp, grid frame) of the observation it was computed from. These are for
+viewers: a map that cannot be published is reported on `status` and the episode goes on.
 """
 from __future__ import annotations
 
@@ -48,6 +54,7 @@ from gscan_ros.nodes.common import (
     describe,
     guarded,
     qos_profile,
+    report_failure,
     run,
     validated,
 )
@@ -64,6 +71,8 @@ from msg_adapters import (
 )
 
 MODEL_PARAMETERS = ("checkpoint", "device")
+STEP_TIMEOUT_S = 30.0  # a world step takes milliseconds; a robot's gSCAN action a few seconds
+WATCHDOG_PERIOD_S = 0.1  # how often a waiting episode's `step_timeout` is checked
 
 
 class PolicyNode(Node):
@@ -77,6 +86,12 @@ class PolicyNode(Node):
         self.declare_parameter(
             "max_steps", MAX_STEPS, describe("actions per episode before <eos> is forced (read at each episode start)",
                                        int_range=(1, 100_000))
+        )
+        self.declare_parameter(
+            "step_timeout", STEP_TIMEOUT_S, describe(
+                "seconds an episode waits for an observation published after its last action (or, at its start, "
+                "for a first one) before <eos> is forced and it ends ABORTED; 0: wait forever (a change applies "
+                "at once)", float_range=(0.0, 86_400.0))
         )
         self.declare_parameter(
             "attention_upsample", 10, describe("pixels per grid cell in attention/<word> images", int_range=(1, 100))
@@ -108,16 +123,21 @@ class PolicyNode(Node):
         self._graph_ns = 0  # DDS source timestamp of the running episode's graph
         self._steps = 0
         self._step_cap = 0
+        self._waiting_since = 0.0  # monotonic time the running episode began to wait for an observation
         self._started_ns = time.time_ns()
-        self._reset_ns = 0  # the world's newest reset: anything published before it is past
+        self._reset_ns = 0  # DDS source timestamp of the world's newest reset: anything published before is past
         # The world publishes world_reset before the new state; subscribing to it first
-        # makes the executor take it first when both are waiting. Depth 1: only the newest matters.
+        # makes the executor take it first when both are waiting. Of the world's state only
+        # the newest matters (depth 1); every command graph is queued while the node is
+        # busy, so each gets its report.
         def newest(endpoint):
             return qos_profile(endpoint, depth=interface.LATEST_DEPTH)
 
         self.create_subscription(Header, WORLD_RESET, self.on_world_reset, newest(interface.WORLD_RESET), raw=True)
-        self.create_subscription(String, COMMAND_GRAPH, self.on_graph, newest(interface.COMMAND_GRAPH), raw=True)
+        self.create_subscription(String, COMMAND_GRAPH, self.on_graph,
+                                 qos_profile(interface.COMMAND_GRAPH, depth=interface.LOG_DEPTH), raw=True)
         self.create_subscription(Image, OBSERVATION, self.on_observation, newest(interface.OBSERVATION), raw=True)
+        self.create_timer(WATCHDOG_PERIOD_S, self.check_step)
         self.add_on_set_parameters_callback(validated(self._check_parameters))
         self.add_post_set_parameters_callback(self._apply_parameters)
         self.get_logger().info(f"policy ready (parser {self._policy.parser_name})")
@@ -159,9 +179,12 @@ class PolicyNode(Node):
 
     @guarded
     def on_world_reset(self, data: bytes, info: dict) -> None:
-        reset_ns = cdr_to_reset(data)
+        """The reset's time is when the world published it (its DDS source timestamp, the
+        clock observations are judged by); the header stamp is the world's own account."""
+        cdr_to_reset(data)  # bytes that hold no Header are a rejected input
+        reset_ns = info["source_timestamp"]
         if reset_ns <= self._reset_ns:
-            return
+            return  # this reset or a newer one was already taken
         self._reset_ns = reset_ns
         if self._observation_ns < reset_ns:
             self._observation = None  # the old world's state
@@ -170,24 +193,28 @@ class PolicyNode(Node):
 
     @guarded
     def on_graph(self, data: bytes, info: dict) -> None:
-        if info["source_timestamp"] < self._started_ns:
-            self.get_logger().info("not following the latched command graph published before this node started")
+        published_ns = info["source_timestamp"]
+        try:
+            graph = cdr_to_graph(data)
+        except GscanError as exc:
+            self._refuse(f"rejected command graph: {exc}")
             return
-        if info["source_timestamp"] < self._reset_ns:
-            self.status.reject("ignored a command graph published before the world was reset")
+        if published_ns < self._started_ns or published_ns < self._reset_ns:
+            before = "this node started" if published_ns < self._started_ns else "the world was reset"
+            self._refuse(f"not following {graph.command!r}: its graph was published before {before}")
             return
         if self._graph is not None:
             self._end(es.PREEMPTED, f"a new command came after {self._steps} actions")
         self._take_next_policy()
         try:
-            graph = cdr_to_graph(data)
             self._check_grid(self._observation)
             self._policy.reset(graph)
         except GscanError as exc:
-            self._report(self._new_episode(es.REJECTED, f"rejected command graph: {exc}"))
+            self._refuse(f"rejected command graph: {exc}")
             return
-        self._graph, self._graph_ns, self._steps = graph, info["source_timestamp"], 0
+        self._graph, self._graph_ns, self._steps = graph, published_ns, 0
         self._step_cap = self.get_parameter("max_steps").value
+        self._waiting_since = time.monotonic()
         self._episode = self._new_episode(es.ACTIVE, graph.command)
         self._report(self._episode)
         if self._observation is not None and self._observation_ns > self._sent_ns:
@@ -195,8 +222,9 @@ class PolicyNode(Node):
 
     @guarded
     def on_observation(self, data: bytes, info: dict) -> None:
-        if info["source_timestamp"] < self._reset_ns:
-            return  # a state of the world before the reset, delivered late
+        if info["source_timestamp"] < self._reset_ns:  # a state of the old world, delivered late: no fault
+            self.status.info("ignored an observation published before the world was reset")
+            return
         # Kept even when it does not fit the checkpoint, so the next command is refused
         # with the reason instead of waiting for a state it can use.
         # A writable copy (the decoded view is read-only, which torch warns about).
@@ -211,6 +239,16 @@ class PolicyNode(Node):
             return
         if self._graph is not None and self._observation_ns > self._sent_ns:
             self._act()
+
+    @guarded
+    def check_step(self) -> None:
+        """The watchdog: an episode that waited `step_timeout` for an observation it can act on
+        (a lost reply, a world that is down) is ended instead of staying ACTIVE forever."""
+        timeout = self.get_parameter("step_timeout").value
+        if self._graph is None or not timeout or time.monotonic() - self._waiting_since < timeout:
+            return
+        after = f"action {self._steps - 1}" if self._steps else "the episode started"
+        self._force_eos(f"no observation came within step_timeout={timeout:g} s after {after}")
 
     def _check_grid(self, observation: np.ndarray | None) -> None:
         """The policy's checkpoint must fit the world's grid (a world of another size is reported, not followed)."""
@@ -228,33 +266,45 @@ class PolicyNode(Node):
         line = f"episode {status.episode_id} {status.outcome}: {status.text}"
         (self.status.reject if status.outcome == es.REJECTED else self.status.info)(line)
 
+    def _refuse(self, text: str) -> None:
+        """A graph this node does not follow: its own REJECTED report (no ACTIVE before it)."""
+        self._report(self._new_episode(es.REJECTED, text))
+
     def _end(self, outcome: str, why: str) -> None:
         """The running episode ended (after its last action was published)."""
         episode, self._episode, self._graph = self._episode, None, None
         self._report(es.EpisodeStatus(episode.episode_id, episode.start_ns, outcome, f"{episode.text!r}: {why}"))
 
+    def _force_eos(self, why: str) -> None:
+        """End the running episode with an `<eos>` of this node's: outcome cut (GoalStatus ABORTED)."""
+        self._action_pub.publish(action_to_cdr(Action.EOS))
+        self._end(es.CUT, why)
+
     def _act(self) -> None:
-        cut = self._steps >= self._step_cap
-        if cut:
-            action, attention, ordering = Action.EOS, {}, None
-        else:
+        if self._steps >= self._step_cap:
+            self._force_eos(f"stopped at max_steps={self._step_cap}")
+            return
+        try:
             out = self._policy.step(self._observation)
-            action, attention, ordering = out.action, out.attention, size_ordering(out.attention, out.antonyms)
-        if action is not Action.EOS:  # the world replies to it: act again only on a later state
+            action = action_to_cdr(out.action)
+        except Exception as exc:  # noqa: BLE001 - a failed step ends its episode, never the node
+            self._force_eos(f"step {self._steps} failed: {type(exc).__name__}: {exc}")
+            report_failure(self, exc, "the policy's step", context="the policy's step failed: ")
+            return
+        if out.action is not Action.EOS:  # the world replies to it: act again only on a later state
             self._sent_ns = time.time_ns()
-        self._action_pub.publish(action_to_cdr(action))
-        self._publish_attention(attention)
-        if ordering is not None:
-            self._publish_size_ordering(ordering)
-        if action is Action.EOS:
-            if cut:
-                self._end(es.CUT, f"stopped at max_steps={self._step_cap}")
-            else:
-                self._end(es.COMPLETE, f"done after {self._steps} actions")
+        self._action_pub.publish(action)
+        try:
+            self._publish_maps(out.attention, out.antonyms)
+        except Exception as exc:  # noqa: BLE001 - a viewer's map must never hold up the episode
+            report_failure(self, exc, "_publish_maps", context=f"attention maps of step {self._steps} not published: ")
+        if out.action is Action.EOS:
+            self._end(es.COMPLETE, f"done after {self._steps} actions")
         else:
             self._steps += 1
+            self._waiting_since = time.monotonic()
 
-    def _publish_attention(self, attention: dict[str, np.ndarray]) -> None:
+    def _publish_maps(self, attention: dict[str, np.ndarray], antonyms: dict[str, np.ndarray]) -> None:
         upsample = self.get_parameter("attention_upsample").value
         for word, weights in attention.items():
             pub = self._attention_pubs.get(word)
@@ -262,12 +312,14 @@ class PolicyNode(Node):
                 pub = self._attention_pubs[word] = self.create_publisher(
                     Image, attention_topic(word), qos_profile(interface.ATTENTION))
             pub.publish(attention_to_cdr(weights, upsample=upsample, header=self._observation_header))
+        ordering = size_ordering(attention, antonyms)
+        if ordering is not None:
+            self._publish_size_ordering(ordering, upsample)
 
-    def _publish_size_ordering(self, ordering: np.ndarray) -> None:
+    def _publish_size_ordering(self, ordering: np.ndarray, upsample: int) -> None:
         """Shifted to start at 0, so the smallest object is darkest and the biggest lightest."""
         if self._size_ordering_pub is None:
             self._size_ordering_pub = self.create_publisher(Image, SIZE_ORDERING, qos_profile(interface.SIZE_ORDERING))
-        upsample = self.get_parameter("attention_upsample").value
         self._size_ordering_pub.publish(attention_to_cdr(ordering - ordering.min(), upsample=upsample,
                                                          header=self._observation_header))
 

@@ -7,26 +7,32 @@ An action whose DDS source timestamp predates the last reset was meant for the o
 world: it is reported on `status` and gets no reply.
 
 Every (re)load first publishes `world_reset`, stamped with the load time, then the new
-state: that stamp is how the policy and the recorder learn that a running episode
-ended with its world (docs/ros.md "Resets"). A new situation source set while running
-(`ros2 param set`: dataset, split, index, seed, grid_size) is served from the next reset.
+state: that message is how the policy and the recorder learn that a running episode
+ended with its world (docs/ros.md "Resets"). The node counts the actions of the running
+episode (`actions since reset`), from 0 at each load, each `<eos>` and each episode the
+policy starts (`episode_status` ACTIVE: a preempted episode sends no `<eos>`). A new
+situation source set while running (`ros2 param set`: dataset, split, index, seed,
+grid_size) is served from the next reset.
 """
 from __future__ import annotations
 
 import time
 from pathlib import Path
 
+from actionlib_msgs.msg import GoalStatus
 from rclpy.node import Node
 from sensor_msgs.msg import Image
 from std_msgs.msg import Header, String
 from std_srvs.srv import Trigger
 
+from gscan_ros import episode_status as es
 from gscan_ros import interface
 from gscan_ros.data.episode import Episode
 from gscan_ros.data.sources import episode_source
 from gscan_ros.errors import DatasetFormatError, GscanError
 from gscan_ros.nodes.common import (
     ACTION,
+    EPISODE_STATUS,
     OBSERVATION,
     RESET_WORLD,
     SITUATION,
@@ -45,6 +51,7 @@ from gscan_ros.world.render import render
 from gscan_ros.world.types import GRID_SIZE, SUPPORTED_GRID_SIZES, Action
 from gscan_ros.world.world import World
 from msg_adapters import (
+    cdr_to_episode_status,
     cdr_to_text,
     grid_header,
     image_to_cdr,
@@ -88,9 +95,12 @@ class WorldSimulatorNode(Node):
         self._world: World | None = None
         self._reset_ns = 0
         self._state_ns = 0  # when the world reached its current state: its observation's stamp
-        self._actions = 0  # actions applied since the last reset or <eos>
+        self._actions = 0  # actions applied in the running episode (since the last reset, <eos> or episode start)
+        self._last_action_ns = 0  # DDS source timestamp of the newest action applied
         self.load(self._source.next())  # a bad dataset is a start-up error (run() reports it)
         self.create_subscription(String, ACTION, self.on_action, qos_profile(interface.ACTION), raw=True)
+        self.create_subscription(GoalStatus, EPISODE_STATUS, self.on_episode_status,
+                                 qos_profile(interface.EPISODE_STATUS), raw=True)
         self.create_service(Trigger, RESET_WORLD, self.on_reset_world)
         self.add_on_set_parameters_callback(validated(self._check_parameters))
         self.add_post_set_parameters_callback(self._apply_parameters)
@@ -166,9 +176,17 @@ class WorldSimulatorNode(Node):
                 return
             self._world.step(action)
             self._actions += 1
+            self._last_action_ns = info["source_timestamp"]
         except GscanError as exc:
             self.status.reject(f"rejected action {quote(token)}: {exc}")
         self.publish_state()
+
+    @guarded
+    def on_episode_status(self, data: bytes, info: dict) -> None:
+        """A new episode counts its actions from 0. Topics are not ordered with each other, so
+        its first action may have come before its ACTIVE report: then it counts."""
+        if cdr_to_episode_status(data).outcome == es.ACTIVE:
+            self._actions = int(self._last_action_ns > info["source_timestamp"])
 
     @guarded_trigger("reset failed, world unchanged")
     def on_reset_world(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:

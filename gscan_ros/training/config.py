@@ -6,16 +6,29 @@ Unknown keys are an error naming the key, so a typo never silently trains the de
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 from gscan_ros.errors import GscanError, quoted
 from gscan_ros.language.lexicon import LEXICONS
-from gscan_ros.language.registry import DEFAULT_PARSER
+from gscan_ros.language.registry import DEFAULT_PARSER, get_parser
 from gscan_ros.model.checkpoint import KINDS, model_classes
 from gscan_ros.training.batches import BATCHING
 from gscan_ros.user_files import parse_yaml, read_yaml
+
+# Keys that may differ between a run's saved config and the config it goes on with (a
+# resume, the plan of a finished run) without making it another run: the budget and the
+# machine. `max_updates` only where it cannot move the learning-rate schedule
+# (`_decays_to_budget`).
+UNTRACKED_KEYS = ("max_updates", "max_minutes", "threads")
+
+
+# Candidate k of a seed screen trains with seed + SCREEN_SEED_STRIDE * k (distinct for runs
+# with seeds below the stride); every seed must be one numpy takes.
+SCREEN_SEED_STRIDE = 1000
+MAX_SEED = 2**32 - 1
 
 
 class ConfigError(GscanError):
@@ -138,6 +151,10 @@ class TrainConfig:
                 raise ConfigError(f"{key} must be a finite number >= 0, got {quoted(getattr(self, key))}")
         if self.lr <= 0:
             raise ConfigError(f"lr must be positive, got {quoted(self.lr)}")
+        last_seed = int(self.seed) + SCREEN_SEED_STRIDE * max(int(self.screen_seeds) - 1, 0)
+        if int(self.seed) < 0 or last_seed > MAX_SEED:
+            raise ConfigError(f"seed must be in [0, {MAX_SEED}] (numpy's range) for every screen candidate "
+                              f"(seed + {SCREEN_SEED_STRIDE} k), got {quoted(self.seed)}")
         if self.min_lr_ratio > 1:
             raise ConfigError(f"min_lr_ratio must be in [0, 1], got {quoted(self.min_lr_ratio)}")
         if self.target_dev_exact_match > 100:
@@ -248,3 +265,63 @@ class TrainConfig:
             else:
                 data[key] = value
         return cls.from_dict(data)
+
+
+def config_changes(saved: dict, cfg: TrainConfig, events: list[dict] = ()) -> list[str]:
+    """The keys where a run's saved config (its config.yaml, or the `train_config` of its
+    checkpoint) differs from `cfg`, the one rule of what may change under a run: the
+    `UNTRACKED_KEYS` aside, model settings compared with their defaults filled in. A field
+    added to TrainConfig since the run started counts as its default there (the behaviour
+    the run had); keys TrainConfig no longer has are ignored. `screen_seeds` may change
+    where the run's seed screen (its metrics.jsonl `events`) would have kept the same seed."""
+    defaults = TrainConfig().to_dict()
+    old, new = {**defaults, **saved}, cfg.to_dict()
+    untracked = set(UNTRACKED_KEYS)
+    if _decays_to_budget(old) or _decays_to_budget(new):
+        untracked.discard("max_updates")
+    keys = sorted(set(new) - untracked - {"model"})
+    changed = [k for k in keys if old[k] != new[k]]
+    if "screen_seeds" in changed and _screen_kept(events, new["screen_seeds"]):
+        changed.remove("screen_seeds")
+    old_model, new_model = _saved_model_settings(saved), cfg.model_config().to_dict()
+    if old_model is None:
+        return changed + ["model"]
+    return changed + [f"model.{k}" for k in sorted(set(old_model) & set(new_model)) if old_model[k] != new_model[k]]
+
+
+def _decays_to_budget(config: dict) -> bool:
+    """The decay of a config (`TrainConfig.to_dict`) ends at `max_updates` (`decay_updates`
+    0, `lr_factor`), so its budget shapes the learning-rate schedule."""
+    return config["lr_decay"] != "none" and not config["decay_updates"]
+
+
+def _screen_kept(events: list[dict], screen_seeds: int) -> bool:
+    """The run's seed screen passed at a candidate that `screen_seeds` candidates also
+    reach, so screening with that many would have kept the same seed (the same run)."""
+    passed = [e["candidate"] for e in events if e.get("event") == "screen" and e.get("passed")]
+    return bool(passed) and passed[0] < max(screen_seeds, 1)
+
+
+def _saved_model_settings(config: dict) -> dict | None:
+    """Every model setting of a saved config (None if they no longer load). A compositional
+    network saved before `init_fan_in` existed was initialised as 'table' does, which
+    differs from the default 'module' only where its parse has modules of several arguments."""
+    model = dict(config.get("model") or {})
+    kind = config.get("model_kind", "compositional")
+    try:
+        settings = TrainConfig(model_kind=kind, model=model).model_config().to_dict()
+        if "init_fan_in" in settings and "init_fan_in" not in model \
+                and _widest_module(config.get("parser", DEFAULT_PARSER)) > 1:
+            settings["init_fan_in"] = "table"
+    except GscanError:
+        return None
+    return settings
+
+
+@functools.lru_cache(maxsize=None)
+def _widest_module(parser: str) -> int:
+    """The most argument slots a module of `parser`'s parses of the gSCAN commands has."""
+    from gscan_ros.language.grammar import all_commands
+
+    parse = get_parser(parser).parse
+    return max(max(1, node.arity) for command in all_commands() for node in parse(command).nodes)

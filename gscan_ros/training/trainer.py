@@ -2,14 +2,15 @@
 
 A run directory holds `config.yaml` (resolved), `metrics.jsonl` (one JSON object per
 log line / validation), `learning_curve.png`, `last.pt` (with optimizer + RNG state, for
-`--resume`), `best.pt` (best dev exact match) and `model.pt` (best.pt without training
-state: the file to ship or evaluate). One run writes it at a time (`gscan_ros.outputs`),
-each file replaced whole.
+`--resume`) and `last.prev.pt` (the one before it), `best.pt` (best dev exact match) and
+`model.pt` (best.pt without training state: the file to ship or evaluate). One run writes
+it at a time (`gscan_ros.outputs`), each file replaced whole and durably.
 """
 from __future__ import annotations
 
 import contextlib
 import itertools
+import logging
 import random
 import time
 from dataclasses import dataclass
@@ -25,26 +26,35 @@ from tqdm import tqdm
 from gscan_ros.analysis.explain import step0_readings, summarize
 from gscan_ros.errors import CheckpointError, DatasetFormatError, GscanError
 from gscan_ros.language.lexicon import Lexicon
-from gscan_ros.model.checkpoint import build_model, checkpoint_dict, read_checkpoint, restore_model, save_checkpoint
+from gscan_ros.model.checkpoint import (
+    build_model,
+    checkpoint_dict,
+    parameter_count,
+    previous_checkpoint,
+    read_checkpoint,
+    restore_model,
+    save_checkpoint,
+)
 from gscan_ros.model.modules import ModuleTable
 from gscan_ros.model.policy import Policy
 from gscan_ros.outputs import claimed, refuse_links, replacing, write_text
 from gscan_ros.runtime import configure_torch, mkl_shim_loaded
 from gscan_ros.training import distributed
 from gscan_ros.training.batches import EpisodeStore, EpochCursor, iterate_batches, word_repeats
-from gscan_ros.training.config import ConfigError, TrainConfig
+from gscan_ros.training.config import SCREEN_SEED_STRIDE, ConfigError, TrainConfig, config_changes
 from gscan_ros.training.evaluate import evaluate_episodes, exact_match_by_group
 from gscan_ros.training.metrics_log import append_event, read_events, rewind
 from gscan_ros.training.step import TrainingDiverged, TrainStep
 
-# Seed screening: candidate k of a run with seed s has seed s + 1000 k (distinct for runs
-# with seeds below 1000), and its maps are read on this many dev episodes.
-SCREEN_SEED_STRIDE = 1000
+# Seed screening: candidate k of a run with seed s has seed s + SCREEN_SEED_STRIDE k
+# (training/config.py), and its maps are read on this many dev episodes.
 SCREEN_EPISODES = 300
 # What a screened candidate is: the Run attributes that `fresh_start` and training change.
 SCREEN_STATE = ("seed", "model", "optimizer", "scheduler", "step", "cursor", "train_step", "policy")
 
-RUN_FILES = ("config.yaml", "metrics.jsonl", "learning_curve.png", "last.pt", "best.pt", "model.pt")
+RUN_FILES = ("config.yaml", "metrics.jsonl", "learning_curve.png", "last.pt", "last.prev.pt", "best.pt", "model.pt")
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -55,8 +65,14 @@ class RunFiles:
     metrics = property(lambda self: self.root / "metrics.jsonl")
     curve = property(lambda self: self.root / "learning_curve.png")
     last = property(lambda self: self.root / "last.pt")
+    previous = property(lambda self: previous_checkpoint(self.last))
     best = property(lambda self: self.root / "best.pt")
     model = property(lambda self: self.root / "model.pt")
+
+    def resume_point(self) -> Path | None:
+        """The checkpoint `--resume` starts from: last.pt, else (lost between the two
+        renames of its save) the one before it; None when the run has neither."""
+        return next((p for p in (self.last, self.previous) if p.exists()), None)
 
     def snapshot(self, step: int) -> Path:
         return self.root / f"step_{step}.pt"
@@ -79,7 +95,7 @@ class RunFiles:
             raise GscanError(f"run directory {self.root} is a file, not a directory")
         refuse_links(self.root / name for name in RUN_FILES)
         if resume:
-            if not self.last.exists():
+            if self.resume_point() is None:
                 raise CheckpointError(f"--resume: no checkpoint at {self.last}")
             return
         found = self.existing()
@@ -218,9 +234,14 @@ def train(cfg: TrainConfig, data: str, out_dir: str | Path, resume: bool = False
     Started by `torchrun` with several ranks, the ranks train one model with
     DistributedDataParallel: each takes a shard of every global batch of `batch_size`
     (`distributed.shard_batch`), rank 0 validates, logs and writes the run's files, and
-    every rank returns rank 0's result. The batches, and so a run's result, do not depend
-    on the number of ranks (up to float rounding); `resume` continues a run whatever
-    number of ranks wrote it."""
+    every rank returns rank 0's result. The global batches do not depend on the number of
+    ranks, so with dropout off neither does the result (up to float rounding). The dropout
+    masks do: each rank draws those of its own shard, rank 0 from the generator a single
+    process seeds, rank r > 0 from one seeded by (seed, r, update at start), so with
+    dropout on N ranks train as with other masks, reproducibly for the same N. `resume`
+    continues a run whatever number of ranks wrote it (batch cursor and rank 0's
+    generators from last.pt); ranks r > 0 are seeded afresh from (seed, r, update), so a
+    resumed multi-rank run with dropout on is not bit for bit the run left unstopped."""
     files = RunFiles(Path(out_dir))
     with distributed.joined(device) as ranks, contextlib.ExitStack() as held:
         ranks.from_main(lambda: files.claim(held, resume, overwrite))
@@ -239,7 +260,7 @@ class Run:
 
     def __init__(self, cfg: TrainConfig, data: str, files: RunFiles, ranks: distributed.Ranks, progress: bool,
                  on_validation: Callable[[dict], None] | None):
-        self.cfg, self.files, self.ranks, self.on_validation = cfg, files, ranks, on_validation
+        self.cfg, self.data, self.files, self.ranks, self.on_validation = cfg, data, files, ranks, on_validation
         self.progress = progress and ranks.is_main
         configure_torch(cfg.threads)
         self.seeds = seed_everything(cfg.seed)
@@ -263,6 +284,8 @@ class Run:
         if cfg.screen_seeds > 1 and ranks.distributed:
             raise ConfigError("screen_seeds runs on one process; screen first, then train on several ranks")
         self.best, self.elapsed_before = -1.0, 0.0
+        self.best_step: int | None = None  # the update of the best validation (best.pt's)
+        self.best_unsaved = False  # a validation improved on the best; `save_resume_point` writes best.pt
         self.last_metrics: dict = {}
         self.screen_resume: dict | None = None  # a screen stopped between candidates (`resume`)
         self.fresh_start(cfg.seed)
@@ -283,9 +306,11 @@ class Run:
         self.step, self.cursor = 0, EpochCursor()
 
     def resume(self) -> None:
-        """Continue from last.pt: weights, optimizer, schedule, batch cursor, best score, RNGs."""
+        """Continue from last.pt: weights, optimizer, schedule, batch cursor, best score, RNGs.
+        A best.pt older than the best last.pt records (a stop between the two writes of
+        `save_resume_point`) is written again from last.pt, whose weights it was."""
         cfg = self.cfg
-        ckpt = self.ranks.from_main(lambda: _read_resume_checkpoint(self.files.last, cfg))
+        ckpt = self.ranks.from_main(lambda: _read_resume_checkpoint(self.files, cfg))
         restore_model(ckpt, self.model)
         self.optimizer.load_state_dict(ckpt["optimizer"])
         self.step = int(ckpt["step"])
@@ -295,10 +320,13 @@ class Run:
         self.cursor = EpochCursor(**ckpt["cursor"])
         self.seed = int(ckpt.get("train_seed", cfg.seed))
         self.best = float(ckpt["best_dev_exact_match"])
+        self.best_step = ckpt.get("best_step")
         self.elapsed_before = float(ckpt.get("elapsed_s", 0.0))
         _restore_rng(ckpt["rng"], self.ranks.device)
         if "screen" in ckpt:  # stopped during the seed screen: it goes on at the next candidate
             self.screen_resume = {**ckpt["screen"], "rng": ckpt["rng"]}
+        if self.ranks.is_main and self.best_step == self.step and _checkpoint_step(self.files.best) != self.step:
+            self.checkpoint(self.files.best, ckpt.get("metrics", {}), training_state=False)
 
     def start(self, resumed: bool) -> None:
         """Make the update step (DDP joins here) and, on rank 0, the run files and the start record."""
@@ -311,12 +339,12 @@ class Run:
             if resumed:  # the updates after the checkpoint are trained again: log them once
                 rewind(self.files.metrics, self.step)
             write_text(self.files.config, yaml.safe_dump(self.cfg.to_dict(), sort_keys=False))
-            n_params = sum(p.numel() for p in self.model.parameters())
             append_event(self.files.metrics, {
                 "event": "start", "step": self.step, "seeds": self.seeds, "train_examples": len(self.store),
-                "dev_examples": len(self.dev_eps), "parameters": n_params, "resumed": resumed,
+                "dev_examples": len(self.dev_eps), "parameters": parameter_count(self.model), "resumed": resumed,
                 "world_size": ranks.world_size, "device": str(ranks.device), "mkl_shim": mkl_shim_loaded(),
-                "data_load_s": round(time.time() - self.setup_started, 2), "config": self.cfg.to_dict()})
+                "data_load_s": round(time.time() - self.setup_started, 2), "data": self.data,
+                "config": self.cfg.to_dict()})
         self.started = time.time()
 
     def make_step(self) -> None:
@@ -366,8 +394,8 @@ class Run:
                 self.last_metrics = ranks.from_main(self.validate)
                 reached = self.reached_target(self.last_metrics["dev_exact_match"])
             if main and (self.step % cfg.checkpoint_every == 0 or self.step == cfg.max_updates or out_of_time
-                         or reached):
-                self.checkpoint(self.files.last, self.last_metrics, training_state=True)
+                         or reached or self.best_unsaved):
+                self.save_resume_point()
             if main and cfg.snapshot_every and self.step % cfg.snapshot_every == 0:
                 self.checkpoint(self.files.snapshot(self.step), self.last_metrics, training_state=False)
             if out_of_time or reached:
@@ -447,42 +475,51 @@ class Run:
         return bool(self.cfg.target_dev_exact_match) and dev_exact_match >= self.cfg.target_dev_exact_match
 
     def validate(self) -> dict:
-        """Closed-loop exact match on the dev subset; best.pt on a new best (rank 0 only)."""
+        """Closed-loop exact match on the dev subset (rank 0 only); a new best is noted for
+        `save_resume_point`, which the caller runs next."""
         res = evaluate_episodes(self.policy, self.dev_eps, batch_size=self.cfg.eval_batch_size)
         metrics = {"step": self.step, "dev_exact_match": res.exact_match, "dev_token_accuracy": res.token_accuracy,
                    "dev_examples": len(self.dev_eps), "elapsed_s": round(self.elapsed(), 2),
                    "lr": self.optimizer.param_groups[0]["lr"], "dev_by_group": exact_match_by_group(res.predictions)}
         if res.exact_match > self.best or not self.files.best.exists():
-            self.best = max(self.best, res.exact_match)
-            self.checkpoint(self.files.best, metrics, training_state=False)
+            self.best, self.best_step, self.best_unsaved = max(self.best, res.exact_match), self.step, True
         append_event(self.files.metrics, {"event": "validation", **metrics})
         plot_learning_curve(self.files.metrics, self.files.curve)
         if self.on_validation is not None:
             self.on_validation(metrics)
         return metrics
 
+    def save_resume_point(self) -> None:
+        """last.pt, then best.pt when the last validation was a new best: the resume point is
+        never older than best.pt (a stop between the two leaves a last.pt that `resume`
+        writes best.pt from)."""
+        self.checkpoint(self.files.last, self.last_metrics, training_state=True)
+        if self.best_unsaved:
+            self.checkpoint(self.files.best, self.last_metrics, training_state=False)
+            self.best_unsaved = False
+
     def checkpoint(self, path: Path, metrics: dict, training_state: bool, screened: dict | None = None,
                    screen: dict | None = None) -> None:
-        """The weights; with `training_state`, all `resume` needs too. `screened`: a
-        screen candidate's kept state (`screen`) to write instead of the current one, with
-        `screen` (where the screen goes on) recorded beside it."""
+        """The weights; with `training_state` (last.pt, the one before it kept), all `resume`
+        needs too. `screened`: a screen candidate's kept state (`screen`) to write instead of
+        the current one, with `screen` (where the screen goes on) recorded beside it."""
         run = SimpleNamespace(**screened) if screened else self
         extra = {}
         if training_state:
             extra = {"train_config": self.cfg.to_dict(), "optimizer": _to_cpu(run.optimizer.state_dict()),
                      "rng": screened["rng"] if screened else _rng_state(self.ranks.device),
                      "cursor": {"epoch": run.cursor.epoch, "batch": run.cursor.batch}, "train_seed": run.seed,
-                     "best_dev_exact_match": self.best, "elapsed_s": self.elapsed()}
+                     "best_dev_exact_match": self.best, "best_step": self.best_step, "elapsed_s": self.elapsed()}
         if screen:
             extra["screen"] = screen
         save_checkpoint(path, checkpoint_dict(run.model, parser=self.cfg.parser, lexicon=self.lexicon,
-                                              step=run.step, metrics=metrics, **extra))
+                                              step=run.step, metrics=metrics, **extra), keep_previous=training_state)
 
     def finish(self) -> dict:
         """Validate the last update if not yet done, ship best.pt as model.pt, write the end record."""
         if not self.last_metrics or self.last_metrics.get("step") != self.step:
             self.last_metrics = self.validate()
-            self.checkpoint(self.files.last, self.last_metrics, training_state=True)
+            self.save_resume_point()
         save_checkpoint(self.files.model, dict(read_checkpoint(self.files.best)))
         reached = self.reached_target(self.best)
         append_event(self.files.metrics, {"event": "end", "step": self.step, "best_dev_exact_match": self.best,
@@ -509,12 +546,30 @@ class _LossWindow:
         return self.examples / max(now - self.since, 1e-9)
 
 
-def _read_resume_checkpoint(path: Path, cfg: TrainConfig) -> dict:
-    ckpt = read_checkpoint(path)
-    if ckpt.get("parser") != cfg.parser:
-        raise CheckpointError(f"--resume: checkpoint was trained with parser {ckpt.get('parser')!r}, "
-                              f"config says {cfg.parser!r}")
+def _read_resume_checkpoint(files: RunFiles, cfg: TrainConfig) -> dict:
+    """last.pt, or with a warning the one before it when last.pt is missing (a crash between
+    the two renames of its save) or unreadable; ConfigError when `cfg` changes what the run
+    trained with (`config_changes`)."""
+    try:
+        path, ckpt = files.last, read_checkpoint(files.last)
+    except CheckpointError as exc:
+        if not files.previous.is_file():
+            raise
+        log.warning("%s; resuming from %s, the checkpoint before it", exc, files.previous)
+        path, ckpt = files.previous, read_checkpoint(files.previous)
+    changed = config_changes(ckpt.get("train_config", cfg.to_dict()), cfg, read_events(files.metrics))
+    if changed:
+        raise ConfigError(f"--resume: {path} was trained with other settings of {', '.join(changed)}; resume with "
+                          f"the run's own (its config.yaml) or start a new run")
     return ckpt
+
+
+def _checkpoint_step(path: Path) -> int | None:
+    """The update a checkpoint holds; None when it is missing or unreadable."""
+    try:
+        return int(read_checkpoint(path)["step"])
+    except CheckpointError:
+        return None
 
 
 def _to_cpu(obj):

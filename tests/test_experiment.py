@@ -633,6 +633,17 @@ def test_report_is_byte_identical_and_refuses_to_overwrite(results, tmp_path, ca
     assert "is in both" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("field, value", [("splits", {"test": 3}), ("data", ["length"]),
+                                          ("splits", {"test": {"letter": "A", "exact_match": "high"}})])
+def test_report_names_a_results_json_of_the_wrong_shape(results, tmp_path, capsys, field, value):
+    path = results[0] / "state_s0" / "results.json"
+    doc = json.loads(path.read_text())
+    path.write_text(json.dumps(doc | {field: value}))
+    assert report(results, tmp_path / "tables.md", "--no-curves") == 1
+    err = capsys.readouterr().err
+    assert f"{path}: malformed results.json" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
 def test_committed_tables_regenerate_exactly(tmp_path, monkeypatch):
     committed = REPO / "docs/paper_tables.md"
     if not (REPO / "results/paper").is_dir() or not committed.is_file():

@@ -121,6 +121,13 @@ def _read_run(path: Path) -> RunResult:
     missing = [k for k in _RESULT_KEYS if k not in doc] if isinstance(doc, dict) else list(_RESULT_KEYS)
     if missing:
         raise ReportError(f"{path} is not a run's results.json (no {missing[0]!r}; made by `gscan-ros experiment`?)")
+    try:
+        return _run_result(path, doc)
+    except (AttributeError, KeyError, TypeError, ValueError) as exc:  # a value of the wrong type or shape
+        raise ReportError(f"{path}: malformed results.json ({type(exc).__name__}: {exc})") from None
+
+
+def _run_result(path: Path, doc: dict) -> RunResult:
     data = doc["data"]
     if data.get("split_kind") == "length":
         cut = doc.get("max_train_target_length") or data.get("cut_off_target_length") or 15

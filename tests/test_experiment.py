@@ -23,6 +23,7 @@ from gscan_ros.experiments.paper_figures import TABLE1, TABLE2
 from gscan_ros.experiments.plan import DataRecipe, PlanError, load_plan, resolve_config
 from gscan_ros.experiments.runner import Runner, augment_base
 from gscan_ros.experiments.state import (
+    ExperimentError,
     RunState,
     config_changes,
     run_state,
@@ -150,6 +151,73 @@ def test_a_run_whose_checkpoints_were_lost_starts_over_keeping_the_earlier_attem
     assert [e["resumed"] for e in events if e["event"] == "start"] == [False] and events[-1]["event"] == "end"
     assert json.loads((run / "results.json").read_text())["updates"] == 2
     assert f"the earlier attempt's files moved to {archive}" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_a_stale_run_retrains_beside_its_old_results_which_stay_until_the_retrain_is_evaluated(
+        trained, tmp_path, monkeypatch, capsys):
+    import shutil
+
+    root, _ = trained
+    shutil.copytree(root / "data", tmp_path / "data")
+    shutil.copytree(root / "results/state_s0", tmp_path / "results/state_s0")
+    run = tmp_path / "results/state_s0"
+    old = {name: (run / name).read_bytes() for name in ("results.json", "metrics.jsonl", "config.yaml")}
+    runs = [{"name": "state", "config": str(REPO / "configs/semantic.yaml"), "data": "tiny", "seeds": [0],
+             "splits": SPLITS, "set": {"model.message": "state"}, "max_eval_examples": 3}]
+    plan = write_plan(tmp_path / "plan.yaml", tmp_path, defaults={**TINY, "lr": 0.003}, runs=runs)
+
+    def stopped_before_evaluation(*args, **kwargs):
+        raise ExperimentError("stopped")
+
+    monkeypatch.setattr(Runner, "_evaluate", stopped_before_evaluation)
+    assert experiment(plan, "--restart-stale") == 1
+    # trained in .retrain/; the stale run's files (and its column in the report) are untouched
+    assert {name: (run / name).read_bytes() for name in old} == old
+    assert json.loads((run / ".retrain/metrics.jsonl").read_text().splitlines()[-1])["event"] == "end"
+    capsys.readouterr()
+    assert experiment(plan, "--dry-run") == 0
+    assert re.search(r"evaluate\s+state_s0\s+2/2\s+retrain in .retrain/; the stale run's results stay",
+                     capsys.readouterr().out)
+    monkeypatch.undo()
+    assert experiment(plan) == 0  # a retrain under way goes on without --restart-stale
+    (archive,) = (run / ".replaced").iterdir()
+    assert {name: (archive / name).read_bytes() for name in old} == old
+    assert not (run / ".retrain").exists() and not (run / ".promoting").exists()
+    assert yaml.safe_load((run / "config.yaml").read_text())["lr"] == 0.003
+    assert json.loads((run / "results.json").read_text())["updates"] == 2 and (run / "model.pt").is_file()
+    assert f"state_s0: retrained; the stale run's files moved to {archive}" in capsys.readouterr().out
+    assert experiment(plan, "--dry-run") == 0
+    assert re.search(r"done\s+state_s0", capsys.readouterr().out)
+
+
+def test_a_promotion_cut_short_finishes_without_archiving_the_retrained_files(tmp_path, monkeypatch):
+    from gscan_ros.experiments import state
+
+    run = tmp_path / "run"
+    (run / ".retrain").mkdir(parents=True)
+    for name in ("metrics.jsonl", "results.json"):
+        (run / name).write_text(f"old {name}")
+        (run / ".retrain" / name).write_text(f"new {name}")
+    moved, replace = [], os.replace
+
+    def power_cut_after_one_move(src, dst):
+        if moved:
+            raise KeyboardInterrupt
+        moved.append(src)
+        replace(src, dst)
+
+    monkeypatch.setattr(state.os, "replace", power_cut_after_one_move)
+    with pytest.raises(KeyboardInterrupt):
+        state.promote_retrain(run)
+    monkeypatch.undo()
+    assert (run / ".promoting").exists()
+    assert state.promote_retrain(run) is None  # finishes the move; archives nothing more
+    assert {p.name: p.read_text() for p in run.iterdir() if p.is_file()} == {
+        "metrics.jsonl": "new metrics.jsonl", "results.json": "new results.json"}
+    (archive,) = (run / ".replaced").iterdir()
+    assert {p.name: p.read_text() for p in archive.iterdir()} == {
+        "metrics.jsonl": "old metrics.jsonl", "results.json": "old results.json"}
 
 
 GECA_TINY = {**TINY, "model": {"hidden": 8, "embedding_dim": 8, "cnn_channels": 4}}

@@ -44,8 +44,9 @@ def register(subparsers) -> None:
                         "in the order named within each group (runs to evaluate, then to resume, then new)")
     p.add_argument("--dry-run", action="store_true", help="print what is done, running and left; change nothing")
     p.add_argument("--restart-stale", action="store_true",
-                   help="retrain from scratch runs whose config.yaml or dataset folder no longer matches the plan "
-                        "(their files move to <run>/.replaced/)")
+                   help="retrain from scratch runs whose config.yaml or dataset folder no longer matches the plan, "
+                        "in <run>/.retrain/; their old files stay (and are reported) until the retrain is "
+                        "evaluated, then move to <run>/.replaced/")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 

@@ -14,7 +14,10 @@ Runs that only need evaluating go first, then half-trained ones, then new ones
 the last checkpoint. All state comes from the files: a run's `.lock` (an flock, and the
 host, runner PID and child PID) keeps two runners from training it at once and is free
 once both processes are gone; a run whose config.yaml no longer matches the plan, or
-that trained on another dataset folder, is "stale" and left alone unless `restart_stale`.
+that trained on another dataset folder, is "stale" and left alone unless `restart_stale`;
+then it is retrained in `<run>/.retrain/`, its old results kept (and reported) until the
+retrain is evaluated and moved into place (`state.promote_retrain`). A retrain under way
+resumes like any run.
 """
 from __future__ import annotations
 
@@ -36,15 +39,18 @@ from gscan_ros.experiments.plan import DataRecipe, Plan, RunSpec, resolve_config
 from gscan_ros.experiments.state import (
     DATASET_DONE,
     LOCK,
+    RETRAIN,
     STATES,
     ExperimentError,
     RunState,
     archive_attempt,
     dataset_state,
     finished_end,
+    promote_retrain,
     run_state,
     trained_updates,
     training_left,
+    work_dir,
     work_order,
 )
 from gscan_ros.outputs import replace_durably
@@ -170,7 +176,7 @@ class Runner:
 
     def _updates(self) -> int:
         """Updates trained so far over the share (each run counted up to its budget)."""
-        return sum(min(trained_updates(read_events(self.run_dir(s) / "metrics.jsonl")),
+        return sum(min(trained_updates(read_events(work_dir(self.run_dir(s)) / "metrics.jsonl")),
                        self.configs[s.name].max_updates) for s in self.share)
 
     def _execute(self, spec: RunSpec) -> bool:
@@ -187,24 +193,32 @@ class Runner:
             if state.status == "done":
                 return True
             data_dir = self._dataset(spec.data)
+            work = run_dir / RETRAIN if state.retrain or state.status == "stale" else run_dir
             if state.status in ("new", "resume", "stale"):
-                self.echo(f"train {spec.name} ({state.status}, {state.updates}/{cfg.max_updates} updates)")
-                self._train(spec, run_dir, data_dir, lock, resume=state.status == "resume")
-            self.echo(f"evaluate {spec.name} on {', '.join(spec.splits)}")
-            self._evaluate(spec, cfg, run_dir, data_dir, lock)
+                what = f"{state.status}{', in ' + RETRAIN + '/' if work != run_dir else ''}"
+                self.echo(f"train {spec.name} ({what}, {state.updates}/{cfg.max_updates} updates)")
+                self._train(spec, work, data_dir, lock, resume=state.status == "resume", archive_into=run_dir)
+            if not state.promote:
+                self.echo(f"evaluate {spec.name} on {', '.join(spec.splits)}")
+                self._evaluate(spec, cfg, work, data_dir, lock)
+            if work != run_dir:
+                archive = promote_retrain(run_dir)
+                if archive is not None:
+                    self.echo(f"{spec.name}: retrained; the stale run's files moved to {archive}")
             self.echo(f"done {spec.name}")
             return True
         finally:
             lock.release()
 
-    def _train(self, spec: RunSpec, run_dir: Path, data_dir: Path, lock: FileLock, resume: bool) -> None:
+    def _train(self, spec: RunSpec, run_dir: Path, data_dir: Path, lock: FileLock, resume: bool,
+               archive_into: Path) -> None:
         cmd = [*CLI, "train", "--config", str(spec.config), "--data", str(data_dir), "--out", str(run_dir), "--quiet"]
         for item in spec.train_overrides(self.threads):
             cmd += ["--set", item]
         if resume:
             cmd.append("--resume")
         else:
-            archive = archive_attempt(run_dir)
+            archive = archive_attempt(run_dir, into=archive_into)
             if archive is not None:
                 self.echo(f"{spec.name}: the earlier attempt's files moved to {archive}")
         self._call(cmd, run_dir / "train.log", lock)

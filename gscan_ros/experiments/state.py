@@ -3,10 +3,14 @@ config.yaml, its checkpoints and results.json (`STATES`), and the order the runn
 
 A run whose config.yaml no longer matches the plan (`training.config.config_changes`: the
 budget and the machine may change) or that trained or was evaluated on another dataset
-folder than the plan's is "stale".
+folder than the plan's is "stale". A stale run is retrained (`--restart-stale`) in
+`<run>/.retrain/`, beside its old files, which stay in place (and in the report) until the
+retrained run is evaluated; then `promote_retrain` moves them to `.replaced/` and the
+retrained files into `<run>/`.
 """
 from __future__ import annotations
 
+import os
 import statistics
 import time
 from dataclasses import dataclass
@@ -23,6 +27,10 @@ LOCK = ".lock"
 DATASET_DONE = "recipe.json"
 # Where a restarted run's earlier attempt is kept (hidden: the report reads only live runs).
 REPLACED = ".replaced"
+# Where a stale run is retrained, beside the files it replaces once evaluated (hidden too).
+RETRAIN = ".retrain"
+# Marks a retrained run whose files are being moved into place (`promote_retrain`).
+PROMOTING = ".promoting"
 
 
 class ExperimentError(GscanError):
@@ -54,6 +62,8 @@ class RunState:
     max_updates: int
     detail: str = ""
     seconds_per_update: float | None = None  # median of the run's logged training windows
+    retrain: bool = False  # trains and evaluates in <run>/.retrain/ (a stale run's retrain)
+    promote: bool = False  # a retrain trained and evaluated: only its move into <run>/ is left
 
 
 def seconds_per_update(events: list[dict], batch_size: int) -> float | None:
@@ -118,16 +128,42 @@ def data_change(data_dir: Path, events: list[dict], results: dict | None) -> str
 
 
 def run_state(run_dir: Path, spec: RunSpec, cfg, data_root: Path, ignore_lock: bool = False) -> RunState:
-    """Where a run stands, from its files alone; `data_root` holds the plan's datasets."""
+    """Where a run stands, from its files alone; `data_root` holds the plan's datasets. A
+    retrain under way in `<run>/.retrain/` is the run's state (the old files wait there)."""
+    holder = None if ignore_lock else FileLock(run_dir / LOCK).holder()
+    if holder is not None:
+        events = read_events(work_dir(run_dir) / "metrics.jsonl")
+        return RunState(spec, "running", trained_updates(events), cfg.max_updates,
+                        _holder_text(holder, run_dir / LOCK), seconds_per_update(events, cfg.batch_size),
+                        retrain=work_dir(run_dir) != run_dir)
+    staging = run_dir / RETRAIN
+    if not staging.is_dir():
+        return _files_state(run_dir, spec, cfg, data_root)
+    state = _files_state(staging, spec, cfg, data_root)
+    state.retrain = True
+    if (run_dir / PROMOTING).exists() or state.status == "done":
+        state.status, state.promote = "evaluate", True
+        state.detail = f"retrained in {RETRAIN}/: its files move in place of the stale run's"
+    elif state.status == "stale":
+        state.detail = f"the retrain in {RETRAIN}/ is stale too: {state.detail}"
+    else:
+        state.detail = (f"retrain in {RETRAIN}/" + (" starts over" if state.status == "new" else "")
+                        + "; the stale run's results stay until it is evaluated")
+    return state
+
+
+def work_dir(run_dir: Path) -> Path:
+    """The folder the run trains in: `<run>/.retrain/` while a retrain is under way."""
+    staging = run_dir / RETRAIN
+    return staging if staging.is_dir() else run_dir
+
+
+def _files_state(run_dir: Path, spec: RunSpec, cfg, data_root: Path) -> RunState:
     from gscan_ros.training.trainer import RunFiles
 
     events = read_events(run_dir / "metrics.jsonl")
     state = RunState(spec, "new", trained_updates(events), cfg.max_updates,
                      seconds_per_update=seconds_per_update(events, cfg.batch_size))
-    holder = None if ignore_lock else FileLock(run_dir / LOCK).holder()
-    if holder is not None:
-        state.status, state.detail = "running", _holder_text(holder, run_dir / LOCK)
-        return state
     results = _results(run_dir)
     changed = config_changes(run_dir, cfg, events)
     reasons = [f"config changed: {', '.join(changed)}"] if changed else []
@@ -148,10 +184,11 @@ def run_state(run_dir: Path, spec: RunSpec, cfg, data_root: Path, ignore_lock: b
     return state
 
 
-def archive_attempt(run_dir: Path) -> Path | None:
-    """Move an earlier attempt's files (a start whose checkpoints were lost, or a stale run
-    being restarted) into `<run>/.replaced/<UTC time>_<updates>upd/`, so a restart loses no
-    logged curve or result; None when there is nothing to move."""
+def archive_attempt(run_dir: Path, into: Path | None = None) -> Path | None:
+    """Move an earlier attempt's files (a start whose checkpoints were lost, a stale run
+    replaced by its retrain, or a retrain that went stale) into
+    `<into>/.replaced/<UTC time>_<updates>upd/` (`into`: the run folder, default `run_dir`),
+    so a restart loses no logged curve or result; None when there is nothing to move."""
     from gscan_ros.training.trainer import RunFiles
 
     files = RunFiles(run_dir).existing() + [p for p in (run_dir / "results.json", run_dir / "train.log",
@@ -160,14 +197,34 @@ def archive_attempt(run_dir: Path) -> Path | None:
         return None
     updates = trained_updates(read_events(run_dir / "metrics.jsonl"))
     stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
-    archive = run_dir / REPLACED / f"{stamp}_{updates}upd"
+    into = into or run_dir
+    archive = into / REPLACED / f"{stamp}_{updates}upd"
     suffix = 1
     while archive.exists():
         suffix += 1
-        archive = run_dir / REPLACED / f"{stamp}_{updates}upd_{suffix}"
+        archive = into / REPLACED / f"{stamp}_{updates}upd_{suffix}"
     archive.mkdir(parents=True)
     for path in files:
         path.rename(archive / path.name)
+    return archive
+
+
+def promote_retrain(run_dir: Path) -> Path | None:
+    """Put a finished retrain in place of the stale run: the old files go to `.replaced/`
+    (`archive_attempt`), then every file of `<run>/.retrain/` moves into `<run>/`. The
+    `.promoting` marker, written once the old files are out, lets a move cut short finish
+    on the next call without archiving the retrained files it already moved. Returns the
+    archive of the old files (None when there were none, or on a call that finishes)."""
+    staging, marker = run_dir / RETRAIN, run_dir / PROMOTING
+    archive = None
+    if not marker.exists():
+        archive = archive_attempt(run_dir)
+        marker.write_text(f"{archive or ''}\n")
+    if staging.is_dir():
+        for path in sorted(staging.iterdir()):
+            os.replace(path, run_dir / path.name)
+        staging.rmdir()
+    marker.unlink()
     return archive
 
 

@@ -268,8 +268,11 @@ def test_a_new_bag_dir_mid_episode_ends_it_in_the_old_bag_and_leaves_both_bags_w
     feed.joined()
     feed.report(1, es.ACTIVE)
     feed.act(Action.TURN_LEFT, Action.WALK)
+    lines, info = [], recorder.status.info
+    recorder.status.info = lambda text: (lines.append(text), info(text))
     [result] = recorder.set_parameters(parameters(bag_dir=str(tmp_path / "second")))
     assert result.successful
+    assert lines[0] == f"recorded episode 0 (/policy_node/1: {es.PREEMPTED}, the recording moved to {tmp_path}/second)"
     feed.act(Action.TURN_RIGHT, Action.EOS)
     feed.report(1, es.COMPLETE)
     feed.whole_episode(2)

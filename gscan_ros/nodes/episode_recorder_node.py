@@ -176,8 +176,9 @@ class EpisodeRecorderNode(Node):
             now = time.time_ns()
             writer.write_message(interface.EPISODE_STATUS.bag_topic, interface.EPISODE_STATUS.type,
                                  episode_status_to_cdr(report), now, max(now, writer.last_publish_ns + 1))
+            number = writer.episodes_written
             writer.count_episode(None)
-            self.status.info(f"recorded episode {active.episode_id} as preempted: {why}")
+            self.status.info(f"recorded episode {number} ({active.episode_id}: {es.PREEMPTED}, {why})")
         self._running.clear()
 
     def destroy_node(self) -> None:

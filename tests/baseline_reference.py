@@ -81,7 +81,12 @@ def auxloss_episode(model, command, state, targets):
     world = conv_features(model.visual, torch.as_tensor(state, dtype=text.dtype))
     command_summary, _ = attend(model.think_text, final, text)
     query = torch.tanh(model.think_query(torch.cat([final, command_summary])))
-    located, target_logits = attend(model.think_world, query, world)
+    if model.cfg.think_scorer == "dot":  # each cell scored alone: q·k(cell)/√hidden
+        q, cells = model.think_world.q(query), model.think_world.k(world)
+        target_logits = torch.stack([torch.dot(q, cell) for cell in cells]) / len(q) ** 0.5
+        located = torch.softmax(target_logits, 0) @ cells
+    else:
+        located, target_logits = attend(model.think_world, query, world)
     h = torch.tanh(model.enc_to_dec(final) + model.think_to_dec(torch.cat([command_summary, located])))
 
     def readout(emb, h, text_ctx, world_ctx):

@@ -530,7 +530,7 @@ def test_paper_plan_covers_every_column_with_one_recipe():
     columns = {column for column, _ in seeds}
     main = {"seq2seq", "geca", "auxloss", "lcgn", "state", "attention+state", "constituency", "dependency",
             "semantic"}
-    assert columns == main | {"seq2seq_160k", "auxloss_160k", "geca_keep_held_out", "geca_command_kinds",
+    assert columns == main | {"seq2seq_160k", "auxloss_160k", "auxloss_dot", "geca_keep_held_out", "geca_command_kinds",
                               "semantic_minmax", "semantic_add", "dependency_cosine",
                               "semantic_faithful", "semantic_percommand", "semantic_percommand_screened",
                               "semantic_oversample", "semantic_screened", "attention+state_screened",

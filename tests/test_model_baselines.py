@@ -29,6 +29,10 @@ from model_support import random_states, train_to_exact_match, walk_episodes
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 EPISODES = {"auxloss": reference.auxloss_episode, "lcgn": reference.lcgn_episode}
+# The models checked against the reference: each kind, and AuxLoss with its other classifier.
+VARIANTS = [pytest.param("auxloss", {}, id="auxloss"),
+            pytest.param("auxloss", {"think_scorer": "dot"}, id="auxloss-dot"),
+            pytest.param("lcgn", {}, id="lcgn")]
 COMMANDS = ["walk to a circle", "push a big red square while spinning", "pull a small cylinder cautiously"]
 TIGHT = {"atol": 1e-10, "rtol": 1e-8}
 
@@ -61,13 +65,13 @@ def batch(kind: str, states, targets, cells) -> Seq2SeqBatch:
     return Seq2SeqBatch(COMMANDS, states, padded)
 
 
-@pytest.mark.parametrize("kind", EPISODES)
-def test_teacher_forcing_equals_the_plain_reference(kind):
+@pytest.mark.parametrize(("kind", "settings"), VARIANTS)
+def test_teacher_forcing_equals_the_plain_reference(kind, settings):
     """Loss, logits and every gradient of a mixed batch (commands and episodes of three
     lengths, padded, sorted, decoded as shrinking prefixes) equal the reference's, which
     runs each episode alone, word by word and node by node (float64, eval mode)."""
     torch.set_num_threads(1)
-    model = build(kind).double().eval()
+    model = build(kind, **settings).double().eval()
     states, targets, cells = episodes()
     out = model(batch(kind, states, targets, cells))
     want, want_logits = reference.loss(model, EPISODES[kind], COMMANDS, states, targets, cells)
@@ -79,12 +83,12 @@ def test_teacher_forcing_equals_the_plain_reference(kind):
         torch.testing.assert_close(got, expected, **TIGHT, msg=name)
 
 
-@pytest.mark.parametrize("kind", EPISODES)
-def test_closed_loop_decodes_as_the_reference_on_its_own_actions(kind):
+@pytest.mark.parametrize(("kind", "settings"), VARIANTS)
+def test_closed_loop_decodes_as_the_reference_on_its_own_actions(kind, settings):
     """Batched closed-loop decoding (row 1 dropped after step 2, as evaluation drops finished
     episodes) gives, at every step, the reference's logits for the actions it chose."""
     torch.set_num_threads(1)
-    model = build(kind).double().eval()
+    model = build(kind, **settings).double().eval()
     states, _, _ = episodes()
     with torch.no_grad():
         rollout = model.rollout([SimpleNamespace(command=c) for c in COMMANDS])
@@ -112,14 +116,14 @@ def test_target_cells_are_the_situations_target_positions(tiny_dataset):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("kind", EPISODES)
-def test_overfits_20_walk_episodes(kind):
+@pytest.mark.parametrize(("kind", "settings"), VARIANTS)
+def test_overfits_20_walk_episodes(kind, settings):
     torch.set_num_threads(1)
     episodes_ = walk_episodes(20, seed=1)
     store = EpisodeStore(episodes_, get_parser("semantic", Lexicon.none()))
     dropouts = {"auxloss": ("dropout", "cnn_dropout"),
                 "lcgn": ("dropout", "cnn_dropout", "embedding_dropout", "command_dropout", "read_dropout")}[kind]
-    model = build(kind, **dict.fromkeys(dropouts, 0.0))
+    model = build(kind, **settings, **dict.fromkeys(dropouts, 0.0))
     update = TrainStep(model, torch.optim.Adam(model.parameters(), lr=3e-3), store)
     batches = iterate_batches(store, 20, "mixed", seed=0, cursor=EpochCursor())
     exact, step, loss = train_to_exact_match(update, batches, model, episodes_, batch_size=20, max_updates=400)
@@ -151,6 +155,7 @@ def test_checkpoint_round_trip_and_policy(tmp_path, kind):
 
 
 @pytest.mark.parametrize(("kind", "setting"), [("auxloss", {"target_loss_weight": -1}),
+                                               ("auxloss", {"think_scorer": "bilinear"}),
                                                ("lcgn", {"command_dim": 63}), ("lcgn", {"hidden_size": 8})])
 def test_a_bad_model_setting_is_a_config_error(kind, setting):
     with pytest.raises(ConfigError, match=next(iter(setting))):

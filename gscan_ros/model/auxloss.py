@@ -4,7 +4,8 @@ first finds the target, then decodes.
 Think, once per episode: the encoder's final state attends over the command (the
 attention-weighted command c̄); tanh(W [final; c̄]) attends over the cells, and that
 attention's logits are the target-location classifier over the grid cells (it reads c̄ and
-every cell's world encoding); the cells weighted by its softmax are the attention-weighted
+every cell's world encoding; additive attention, or scaled dot products with
+`think_scorer: dot`); the cells weighted by its softmax are the attention-weighted
 world w̄. Act: the baseline's decoder (`seq2seq.Seq2Seq`, unchanged), whose initial state
 also reads the thought: (h, c) = tanh(W final + W' [c̄; w̄]). Training adds
 `target_loss_weight` x the classifier's cross-entropy against the target's cell to the
@@ -13,6 +14,7 @@ the choices made here.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -40,6 +42,21 @@ class Thought:
     target_logits: torch.Tensor  # [n, cells] the target-location classifier's logits
 
 
+class DotScorer(nn.Module):
+    """Scaled dot-product scores q(query)·k(key)/√hidden, no biases: linear in each key, so
+    a cell's score is the sum of what its features contribute (`think_scorer: dot`)."""
+
+    def __init__(self, query: int, key: int, hidden: int):
+        super().__init__()
+        self.q = nn.Linear(query, hidden, bias=False)
+        self.k = nn.Linear(key, hidden, bias=False)
+        self.scale = 1.0 / math.sqrt(hidden)
+
+    def scores(self, query, projected_keys):
+        """The logit of each key [n, keys]."""
+        return torch.bmm(projected_keys, self.q(query)[:, :, None])[..., 0] * self.scale
+
+
 class AuxLoss(Seq2Seq):
     """`Seq2Seq` with a think step before decoding (module docstring)."""
 
@@ -50,7 +67,8 @@ class AuxLoss(Seq2Seq):
         H = cfg.hidden
         self.think_text = AdditiveAttention(H, H, H)  # query: the encoder's final state
         self.think_query = nn.Linear(2 * H, H)  # tanh(W [final; c̄]) asks for the target
-        self.think_world = AdditiveAttention(H, self.visual.cfg.feature_dim, H)  # logits: the classifier
+        scorer = DotScorer if cfg.think_scorer == "dot" else AdditiveAttention
+        self.think_world = scorer(H, self.visual.cfg.feature_dim, H)  # its logits: the classifier
         self.think_to_dec = nn.Linear(2 * H, H, bias=False)  # the thought joins the decoder's initial state
 
     def think(self, text, final, mask, world) -> Thought:

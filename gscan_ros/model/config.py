@@ -188,19 +188,29 @@ class Seq2SeqConfig(SerializableConfig):
                        ("dropout", "cnn_dropout"))
 
 
+THINK_SCORERS = ("additive", "dot")
+
+
 @dataclass(frozen=True)
 class AuxLossConfig(Seq2SeqConfig):
-    """The baseline's hyper-parameters plus the weight of the target-location loss."""
+    """The baseline's hyper-parameters plus the target-location classifier's loss weight and form."""
 
     target_loss_weight: float = 0.3
     """Weight of the target-location cross-entropy in the loss (a choice: MM's
     `--weight_target_loss` default)."""
+    think_scorer: str = "additive"
+    """How the target-location classifier scores a cell against its query: "additive"
+    (MM's attention, v·tanh(q + k(cell))) or "dot" (q·k(cell)/√hidden, linear in the cell's
+    features, so a cell's score is the sum of what its colour, shape and size contribute).
+    The published classifier's form is not known (docs/model.md, "AuxLoss")."""
 
     def __post_init__(self) -> None:
         super().__post_init__()
         weight = self.target_loss_weight
         if isinstance(weight, bool) or not isinstance(weight, (int, float)) or not math.isfinite(weight) or weight < 0:
             raise ValueError(f"target_loss_weight must be a finite number >= 0, got {quoted(weight)}")
+        if self.think_scorer not in THINK_SCORERS:
+            raise ValueError(f"think_scorer must be one of {', '.join(THINK_SCORERS)}, got {quoted(self.think_scorer)}")
 
 
 @dataclass(frozen=True)

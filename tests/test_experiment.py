@@ -175,7 +175,7 @@ def test_a_stale_run_retrains_beside_its_old_results_which_stay_until_the_retrai
     # trained in .retrain/; the stale run's files (and its column in the report) are untouched
     assert {name: (run / name).read_bytes() for name in old} == old
     assert json.loads((run / ".retrain/metrics.jsonl").read_text().splitlines()[-1])["event"] == "end"
-    capsys.readouterr()
+    assert "train state_s0 (stale, in .retrain/, from update 0 of 2)" in capsys.readouterr().out
     assert experiment(plan, "--dry-run") == 0
     assert re.search(r"evaluate\s+state_s0\s+2/2\s+retrain in .retrain/; the stale run's results stay",
                      capsys.readouterr().out)

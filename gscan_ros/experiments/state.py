@@ -132,10 +132,11 @@ def run_state(run_dir: Path, spec: RunSpec, cfg, data_root: Path, ignore_lock: b
     retrain under way in `<run>/.retrain/` is the run's state (the old files wait there)."""
     holder = None if ignore_lock else FileLock(run_dir / LOCK).holder()
     if holder is not None:
-        events = read_events(work_dir(run_dir) / "metrics.jsonl")
+        work = work_dir(run_dir)
+        events = read_events(work / "metrics.jsonl")
         return RunState(spec, "running", trained_updates(events), cfg.max_updates,
                         _holder_text(holder, run_dir / LOCK), seconds_per_update(events, cfg.batch_size),
-                        retrain=work_dir(run_dir) != run_dir)
+                        retrain=work != run_dir)
     staging = run_dir / RETRAIN
     if not staging.is_dir():
         return _files_state(run_dir, spec, cfg, data_root)

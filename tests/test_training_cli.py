@@ -69,6 +69,26 @@ def test_resume_with_another_parser_is_refused(dataset, tmp_path, capsys):
     assert "parser" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("parser", ["constituency", "dependency"])
+def test_a_run_of_multi_argument_modules_resumes_and_matches_its_own_config(dataset, tmp_path, parser):
+    """A run saves every model setting, defaults included: a parse with modules of several
+    arguments is not mistaken for a run from before `init_fan_in` (which would read as stale
+    to the experiment runner and refuse its own resume)."""
+    import yaml
+
+    from gscan_ros.experiments.state import config_changes
+    from gscan_ros.training.config import TrainConfig
+
+    run = tmp_path / "run"
+    assert run_train(dataset, run, "--set", "max_updates=1", "--set", f"parser={parser}") == 0
+    saved = yaml.safe_load((run / "config.yaml").read_text())
+    assert saved["model"]["init_fan_in"] == "module"
+    plan = TrainConfig.from_dict({**saved, "model": {}, "max_updates": 2})  # a plan leaves defaults out
+    assert config_changes(run, plan) == []
+    assert run_train(dataset, run, "--set", "max_updates=2", "--set", f"parser={parser}", "--resume") == 0
+    assert read_checkpoint(run / "last.pt")["step"] == 2
+
+
 def test_resume_refuses_another_recipe_and_leaves_config_yaml(dataset, tmp_path, capsys):
     """The keys a resume may change are the runner's (`UNTRACKED_KEYS`: budget, time, threads);
     another recipe is refused in one line naming its keys, before any file is written."""

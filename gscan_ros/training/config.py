@@ -219,6 +219,12 @@ class TrainConfig:
     def to_dict(self) -> dict:
         return asdict(self)
 
+    def resolved(self) -> dict:
+        """`to_dict` with every model setting written out, defaults included: what a run
+        saves (config.yaml, checkpoints), so a default that changes later cannot change
+        what the saved run says it trained with."""
+        return {**asdict(self), "model": self.model_config().to_dict()}
+
     @classmethod
     def from_dict(cls, d: dict) -> "TrainConfig":
         if not isinstance(d, dict):

@@ -338,13 +338,13 @@ class Run:
             self.files.create(resumed)
             if resumed:  # the updates after the checkpoint are trained again: log them once
                 rewind(self.files.metrics, self.step)
-            write_text(self.files.config, yaml.safe_dump(self.cfg.to_dict(), sort_keys=False))
+            write_text(self.files.config, yaml.safe_dump(self.cfg.resolved(), sort_keys=False))
             append_event(self.files.metrics, {
                 "event": "start", "step": self.step, "seeds": self.seeds, "train_examples": len(self.store),
                 "dev_examples": len(self.dev_eps), "parameters": parameter_count(self.model), "resumed": resumed,
                 "world_size": ranks.world_size, "device": str(ranks.device), "mkl_shim": mkl_shim_loaded(),
                 "data_load_s": round(time.time() - self.setup_started, 2), "data": self.data,
-                "config": self.cfg.to_dict()})
+                "config": self.cfg.resolved()})
         self.started = time.time()
 
     def make_step(self) -> None:
@@ -506,7 +506,7 @@ class Run:
         run = SimpleNamespace(**screened) if screened else self
         extra = {}
         if training_state:
-            extra = {"train_config": self.cfg.to_dict(), "optimizer": _to_cpu(run.optimizer.state_dict()),
+            extra = {"train_config": self.cfg.resolved(), "optimizer": _to_cpu(run.optimizer.state_dict()),
                      "rng": screened["rng"] if screened else _rng_state(self.ranks.device),
                      "cursor": {"epoch": run.cursor.epoch, "batch": run.cursor.batch}, "train_seed": run.seed,
                      "best_dev_exact_match": self.best, "best_step": self.best_step, "elapsed_s": self.elapsed()}

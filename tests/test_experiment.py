@@ -395,6 +395,7 @@ def test_a_run_on_another_dataset_folder_is_stale(tmp_path, recorded_in, finishe
     end = [{"event": "end", "step": cfg.max_updates}] if finished else []
     (run / "metrics.jsonl").write_text("".join(json.dumps(e) + "\n" for e in [start, *end]))
     (run / "last.pt").write_bytes(b"")
+    (run / "model.pt").write_bytes(b"")
     (run / "results.json").write_text(json.dumps({
         "updates": cfg.max_updates, "evaluation": {"splits": list(spec.splits), "max_examples": spec.eval_max_examples},
         "data": {"dir": str(trained_on)} if recorded_in == "results" else {}}))
@@ -402,6 +403,26 @@ def test_a_run_on_another_dataset_folder_is_stale(tmp_path, recorded_in, finishe
     assert state.status == status
     if status == "stale":
         assert state.detail == f"data changed: {trained_on.name} -> {spec.data.directory(plan.data_root).name}"
+
+
+def test_a_finished_run_without_its_weights_is_stale(tmp_path):
+    """A run whose model.pt is gone has numbers nobody can re-check: the plan retrains it
+    (`--restart-stale`), its old results kept until the retrain is evaluated."""
+    plan = load_plan(write_plan(tmp_path / "plan.yaml", tmp_path))
+    spec = plan.runs[0]
+    cfg = resolve_config(plan, spec)
+    run = tmp_path / "results" / spec.name
+    run.mkdir(parents=True)
+    (run / "config.yaml").write_text(yaml.safe_dump(cfg.resolved()))
+    (run / "metrics.jsonl").write_text("".join(json.dumps(e) + "\n" for e in [
+        {"event": "start", "step": 0}, {"event": "end", "step": cfg.max_updates}]))
+    (run / "results.json").write_text(json.dumps({
+        "updates": cfg.max_updates, "evaluation": {"splits": list(spec.splits), "max_examples": spec.eval_max_examples},
+        "data": {}}))
+    state = run_state(run, spec, cfg, plan.data_root)
+    assert (state.status, state.detail) == ("stale", "no weights (model.pt) to re-check its results")
+    (run / "model.pt").write_bytes(b"")
+    assert run_state(run, spec, cfg, plan.data_root).status == "done"
 
 
 def test_a_start_without_a_checkpoint_is_new_and_says_it_starts_over(tmp_path, capsys):

@@ -2,11 +2,11 @@
 config.yaml, its checkpoints and results.json (`STATES`), and the order the runner works in.
 
 A run whose config.yaml no longer matches the plan (`training.config.config_changes`: the
-budget and the machine may change) or that trained or was evaluated on another dataset
-folder than the plan's is "stale". A stale run is retrained (`--restart-stale`) in
-`<run>/.retrain/`, beside its old files, which stay in place (and in the report) until the
-retrained run is evaluated; then `promote_retrain` moves them to `.replaced/` and the
-retrained files into `<run>/`.
+budget and the machine may change), that trained or was evaluated on another dataset
+folder than the plan's, or that finished without its weights (model.pt) is "stale". A
+stale run is retrained (`--restart-stale`) in `<run>/.retrain/`, beside its old files,
+which stay in place (and in the report) until the retrained run is evaluated; then
+`promote_retrain` moves them to `.replaced/` and the retrained files into `<run>/`.
 """
 from __future__ import annotations
 
@@ -176,6 +176,8 @@ def _files_state(run_dir: Path, spec: RunSpec, cfg, data_root: Path) -> RunState
         state.status, state.detail = "stale", "; ".join(reasons)
     elif end is not None and _evaluated(results, spec, end):
         state.status = "done"
+        if not RunFiles(run_dir).model.is_file():  # its numbers could not be re-checked
+            state.status, state.detail = "stale", "no weights (model.pt) to re-check its results"
     elif end is not None:
         state.status = "evaluate"
     elif RunFiles(run_dir).resume_point() is not None:

@@ -8,6 +8,7 @@ the zip, in `gscan_ros.model.checkpoint`.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 
@@ -65,6 +66,13 @@ def read_json(path: str | os.PathLike, what: str, error: type[GscanError]):
         raise error(f"{what} is not valid JSON: {exc}") from None
     except RecursionError:
         raise error(f"{what} is not valid JSON: nested too deeply") from None
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    """The SHA-256 of a file's bytes, read in chunks: names the exact weights an
+    evaluation scored (a path says nothing once the file is replaced)."""
+    with open(path, "rb") as f:
+        return hashlib.file_digest(f, "sha256").hexdigest()
 
 
 def parse_yaml(text: str, what: str, error: type[GscanError], limit: int = MAX_YAML_BYTES):

@@ -191,6 +191,40 @@ def test_a_stale_run_retrains_beside_its_old_results_which_stay_until_the_retrai
     assert re.search(r"done\s+state_s0", capsys.readouterr().out)
 
 
+@pytest.mark.slow
+def test_an_evaluation_finished_before_a_stop_is_kept_only_for_the_same_weights(trained, tmp_path, monkeypatch):
+    """A runner stopped between `evaluate` and writing results.json keeps the scratch
+    results of that model.pt; results of other weights are decoded again."""
+    import shutil
+
+    root, _ = trained
+    shutil.copytree(root / "data", tmp_path / "data")
+    shutil.copytree(root / "results/semantic_s0", tmp_path / "results/semantic_s0")
+    run, (data,) = tmp_path / "results/semantic_s0", (tmp_path / "data").iterdir()
+    plan = write_plan(tmp_path / "plan.yaml", tmp_path, runs=[
+        {"name": "semantic", "config": str(REPO / "configs/semantic.yaml"), "data": "tiny", "seeds": [0],
+         "splits": SPLITS}])
+    done = json.loads((run / "results.json").read_text())
+    (run / "results.json").unlink()  # stopped after the evaluation, before results.json
+    assert main(["evaluate", "--checkpoint", str(run / "model.pt"), "--data", str(data), "--splits", *SPLITS,
+                 "--out", str(run / ".evaluation"), "--quiet", "--no-predictions", "--max-examples", "5"]) == 0
+    scratch = json.loads((run / ".evaluation/results.json").read_text())
+    calls = []
+    real_call = Runner._call
+    monkeypatch.setattr(Runner, "_call", lambda self, cmd, *a, **k: (calls.append(cmd), real_call(self, cmd, *a, **k)))
+    assert experiment(plan) == 0
+    assert not any("evaluate" in cmd for cmd in calls)
+    assert json.loads((run / "results.json").read_text())["splits"] == scratch["splits"] == done["splits"]
+    assert not (run / ".evaluation").exists()
+
+    (run / "results.json").unlink()  # the same stop, but the scratch scores other weights
+    (run / ".evaluation").mkdir()
+    (run / ".evaluation/results.json").write_text(json.dumps({**scratch, "checkpoint_sha256": "0" * 64}))
+    assert experiment(plan) == 0
+    assert sum("evaluate" in cmd for cmd in calls) == 1
+    assert json.loads((run / "results.json").read_text())["splits"] == done["splits"]
+
+
 def test_a_promotion_cut_short_finishes_without_archiving_the_retrained_files(tmp_path, monkeypatch):
     from gscan_ros.experiments import state
 

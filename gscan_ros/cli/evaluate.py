@@ -58,13 +58,16 @@ def run(args: argparse.Namespace) -> int:
     from gscan_ros.training.distributed import joined
     from gscan_ros.training.evaluate import evaluate_episodes
     from gscan_ros.training.evaluation_files import claim_report_dir, markdown_table, write_reports
+    from gscan_ros.user_files import file_sha256
 
     configure_torch(args.threads)
     with contextlib.ExitStack() as held:
         # The ranks only exchange predictions (Python objects): gloo, whatever the device.
         ranks = held.enter_context(joined(args.device, backend="gloo"))
         ranks.from_main(lambda: claim_report_dir(held, args.out, args.overwrite))  # rank 0 writes the reports
-        policy = Policy.from_checkpoint(args.checkpoint, device=ranks.device)
+        policy = Policy.from_checkpoint(args.checkpoint, device=ranks.device)  # a clear error if unreadable
+        checkpoint = args.checkpoint or default_checkpoint_path()
+        digest = file_sha256(checkpoint)  # which weights these results score, whatever the path holds later
         episodes = select_test_episodes(args.data, args.splits, args.max_examples, args.seed)
         start = time.time()
         result = evaluate_episodes(policy, episodes, batch_size=args.batch_size, ranks=ranks,
@@ -73,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
         if result is None:  # not rank 0: rank 0 has every prediction and writes the reports
             return 0
         seconds = time.time() - start
-        meta = {"checkpoint": str(args.checkpoint or default_checkpoint_path()), "parser": policy.parser_name,
+        meta = {"checkpoint": str(checkpoint), "checkpoint_sha256": digest, "parser": policy.parser_name,
                 "data": str(args.data), "max_examples": args.max_examples, "episodes": len(episodes),
                 "seconds": round(seconds, 2), "episodes_per_s": round(len(episodes) / max(seconds, 1e-9), 1),
                 "title": f"closed-loop evaluation of {args.checkpoint or 'the shipped model'}"}

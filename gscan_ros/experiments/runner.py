@@ -7,7 +7,8 @@
    `last.prev.pt` before it, when it has one); a run is trained when metrics.jsonl's last
    "end" reached the budget;
 3. `model.pt` is evaluated closed loop on the run's test splits (`evaluate`) and
-   `<run>/results.json` gets the splits plus the run's metadata.
+   `<run>/results.json` gets the splits plus the run's metadata (an evaluation of the
+   same weights finished before a stop is kept, `finished_evaluation`).
 
 Runs that only need evaluating go first, then half-trained ones, then new ones
 (`state.work_order`). Each step is a `gscan-ros` subprocess, so a killed runner loses at most the updates since
@@ -56,12 +57,27 @@ from gscan_ros.experiments.state import (
 from gscan_ros.outputs import replace_durably
 from gscan_ros.runtime import mkl_shim_env
 from gscan_ros.training.metrics_log import read_events
-from gscan_ros.user_files import read_json
+from gscan_ros.user_files import file_sha256, read_json
 
 CLI = (sys.executable, "-m", "gscan_ros.cli")
 GENERATE_LOG = "generate.log"  # a dataset folder's log: the generate (and augment) commands' output
 EVAL_SCRATCH = ".evaluation"
 POLL_S = 5.0
+
+
+def finished_evaluation(scratch: Path, model: Path, data_dir: Path, spec: RunSpec) -> dict | None:
+    """The results an `evaluate` left in `scratch` when they score these very weights
+    (`checkpoint_sha256`) on the run's splits, data and example cap: a runner stopped after
+    the evaluation but before it wrote results.json need not decode it all again."""
+    try:
+        evaluation = json.loads((scratch / "results.json").read_text())
+        same = (evaluation.get("checkpoint_sha256") == file_sha256(model)
+                and evaluation.get("data") == str(data_dir)
+                and evaluation.get("max_examples") == spec.eval_max_examples
+                and sorted(evaluation["splits"]) == sorted(spec.splits))
+    except (OSError, ValueError, TypeError, KeyError, AttributeError):
+        return None
+    return evaluation if same else None
 
 
 def augment_base(directory: Path) -> Path:
@@ -225,13 +241,17 @@ class Runner:
         self._call(cmd, run_dir / "train.log", lock)
 
     def _evaluate(self, spec: RunSpec, cfg, run_dir: Path, data_dir: Path, lock: FileLock) -> None:
-        scratch = run_dir / EVAL_SCRATCH
-        cmd = [*CLI, "evaluate", "--checkpoint", str(run_dir / "model.pt"), "--data", str(data_dir),
-               "--splits", *spec.splits, "--out", str(scratch), "--threads", str(self.threads), "--quiet",
-               "--overwrite", "--no-predictions", "--batch-size", str(self.plan.eval_batch_size),
-               "--max-examples", str(spec.eval_max_examples)]
-        self._call(cmd, run_dir / "evaluate.log", lock)
-        evaluation = read_json(scratch / "results.json", f"{scratch}/results.json", ExperimentError)
+        scratch, model = run_dir / EVAL_SCRATCH, run_dir / "model.pt"
+        evaluation = finished_evaluation(scratch, model, data_dir, spec)
+        if evaluation is None:
+            cmd = [*CLI, "evaluate", "--checkpoint", str(model), "--data", str(data_dir),
+                   "--splits", *spec.splits, "--out", str(scratch), "--threads", str(self.threads), "--quiet",
+                   "--overwrite", "--no-predictions", "--batch-size", str(self.plan.eval_batch_size),
+                   "--max-examples", str(spec.eval_max_examples)]
+            self._call(cmd, run_dir / "evaluate.log", lock)
+            evaluation = read_json(scratch / "results.json", f"{scratch}/results.json", ExperimentError)
+        else:
+            self.echo(f"{spec.name}: kept the finished evaluation of this model.pt in {scratch}")
         end = finished_end(read_events(run_dir / "metrics.jsonl"), cfg)
         if end is None:
             raise ExperimentError(f"{run_dir}/metrics.jsonl has no final 'end' event after training")

@@ -69,13 +69,15 @@ def finished_evaluation(scratch: Path, model: Path, data_dir: Path, spec: RunSpe
     """The results an `evaluate` left in `scratch` when they score these very weights
     (`checkpoint_sha256`) on the run's splits, data and example cap: a runner stopped after
     the evaluation but before it wrote results.json need not decode it all again."""
+    if not (scratch / "results.json").is_file():
+        return None
     try:
-        evaluation = json.loads((scratch / "results.json").read_text())
+        evaluation = read_json(scratch / "results.json", f"{scratch}/results.json", ExperimentError)
         same = (evaluation.get("checkpoint_sha256") == file_sha256(model)
                 and evaluation.get("data") == str(data_dir)
                 and evaluation.get("max_examples") == spec.eval_max_examples
                 and sorted(evaluation["splits"]) == sorted(spec.splits))
-    except (OSError, ValueError, TypeError, KeyError, AttributeError):
+    except (ExperimentError, OSError, TypeError, KeyError, AttributeError):  # unreadable or not ours: decode again
         return None
     return evaluation if same else None
 

@@ -195,6 +195,7 @@ def test_a_stale_run_retrains_beside_its_old_results_which_stay_until_the_retrai
 def test_an_evaluation_finished_before_a_stop_is_kept_only_for_the_same_weights(trained, tmp_path, monkeypatch):
     """A runner stopped between `evaluate` and writing results.json keeps the scratch
     results of that model.pt; results of other weights are decoded again."""
+    import hashlib
     import shutil
 
     root, _ = trained
@@ -214,7 +215,11 @@ def test_an_evaluation_finished_before_a_stop_is_kept_only_for_the_same_weights(
     monkeypatch.setattr(Runner, "_call", lambda self, cmd, *a, **k: (calls.append(cmd), real_call(self, cmd, *a, **k)))
     assert experiment(plan) == 0
     assert not any("evaluate" in cmd for cmd in calls)
-    assert json.loads((run / "results.json").read_text())["splits"] == scratch["splits"] == done["splits"]
+    kept = json.loads((run / "results.json").read_text())
+    assert kept["splits"] == scratch["splits"] == done["splits"]
+    digest = hashlib.sha256((run / "model.pt").read_bytes()).hexdigest()  # results.json names the weights
+    assert kept["evaluation"]["checkpoint_sha256"] == scratch["checkpoint_sha256"] == digest
+    assert done["evaluation"]["checkpoint_sha256"] == digest
     assert not (run / ".evaluation").exists()
 
     (run / "results.json").unlink()  # the same stop, but the scratch scores other weights

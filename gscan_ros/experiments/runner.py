@@ -266,7 +266,8 @@ class Runner:
             "config": str(spec.config), "overrides": list(spec.overrides),
             "data": {**spec.data.record(), "dir": str(data_dir)},
             "evaluation": {"splits": list(spec.splits), "max_examples": spec.eval_max_examples,
-                           "episodes": evaluation.get("episodes"), "seconds": evaluation.get("seconds")},
+                           "episodes": evaluation.get("episodes"), "seconds": evaluation.get("seconds"),
+                           "checkpoint_sha256": evaluation.get("checkpoint_sha256")},
             "splits": evaluation["splits"],
         }
         tmp = run_dir / "results.json.tmp"

@@ -9,12 +9,14 @@ from mcap.reader import make_reader
 
 from gscan_ros import episode_status as es
 from gscan_ros.data.bag import LIVE_SPLIT, BagEpisodeReader, BagWriter, iter_bag_episodes, read_bag_info, write_bag
+from gscan_ros.data.bag_cache import load_episode_cache
 from gscan_ros.data.episode import Episode
 from gscan_ros.language import get_parser
 from gscan_ros.world.types import Action
-from msg_adapters import reset_to_cdr, text_to_cdr
+from gscan_ros.world.world import World
+from msg_adapters import action_to_cdr, reset_to_cdr, text_to_cdr
 
-from bag_support import BAD_MESSAGES, LiveStack, make_episodes, mcap_file, recording_with_a_bad_message
+from bag_support import BAD_MESSAGES, LiveStack, make_episodes, mcap_file, recording_with_a_bad_message, rosbag2_copy
 
 PARSER = get_parser("semantic")
 
@@ -286,3 +288,83 @@ def test_a_stray_bad_message_between_episodes_is_lost_alone(tmp_path, topic):
     report = reader.report
     assert report.bad_messages == 1 and report.incomplete_episodes == 0
     assert report.lost_episodes == 0 and report.lost_messages == 1 and not report.complete
+
+
+def test_an_episode_after_a_reset_whose_new_situation_was_missed_is_dropped(tmp_path):
+    """The recorder lagged over the new world's latched `/situation`: the old world is no
+    start for the episode, however many states of the new one were recorded."""
+    old, new = (e.situation for e in make_episodes(2, seed=1))
+    stack = LiveStack(old)
+    stack.state()
+    stack.publish("world_reset", reset_to_cdr(stack.now + stack.step_ns))
+    stack.world = World(new)
+    stack.state(situation=False)
+    stack.command("walk to a red circle", PARSER.parse("walk to a red circle"))
+    stack.episode(stack.route(random.Random(0), 4), situations=False)
+    reader = BagEpisodeReader(_record(stack, tmp_path / "reset"), decode_states=True, include_incomplete=True)
+    assert list(reader.records()) == []
+    assert reader.report.drop_reasons == {"no situation before it started": 1}
+
+
+def test_observations_are_matched_to_actions_by_the_lock_step_protocol(tmp_path):
+    """A preempted episode's last reply comes after the next ACTIVE report (it is the state
+    the next episode starts from), and the recorder misses a later reply: the count of
+    states comes out right, and the states are still the world's, step by step."""
+    rng = random.Random(2)
+    stack = LiveStack(make_episodes(1, seed=5)[0].situation)
+    stack.state()
+    stack.command("walk to a red circle", PARSER.parse("walk to a red circle"))
+    preempted = stack.start()
+    [first] = stack.route(rng, 1)
+    stack.publish("action", action_to_cdr(first))
+    stack.command("walk to a blue circle", PARSER.parse("walk to a blue circle"))
+    stack.end(preempted, es.PREEMPTED)
+    following = stack.start()
+    stack.world.step(first)
+    stack.state()  # the reply to the preempted episode's action
+    start, actions = stack.world.snapshot(), stack.route(rng, 5)
+    for step, action in enumerate(actions):
+        stack.publish("action", action_to_cdr(action))
+        stack.world.step(action)
+        if step != 2:  # the recorder missed this reply
+            stack.state()
+    stack.act(Action.EOS)
+    stack.end(following, es.COMPLETE)
+    bag = _record(stack, tmp_path / "lagged")
+
+    [record] = list(BagEpisodeReader(bag, decode_states=True).records())
+    assert record.episode == _live("walk to a blue circle", start, actions)
+    assert np.array_equal(record.states, record.episode.states())
+    cache = load_episode_cache(bag)
+    assert cache.complete and np.array_equal(cache.states(0), record.episode.states())
+
+
+def test_an_all_topics_recording_stopped_mid_episode_ends_it_preempted(tmp_path):
+    """`ros2 bag record -a` stopped by Ctrl-C writes no end report for the running episode:
+    like our recorder's bags, it reads PREEMPTED (no demonstration) and nothing is lost.
+    In a bag whose writer died, the same tail is lost data."""
+    rng = random.Random(1)
+    stack = LiveStack(make_episodes(1, seed=3)[0].situation)
+    stack.state()
+    situation, actions = stack.world.snapshot(), stack.route(rng, 4)
+    stack.command("walk to a red circle", PARSER.parse("walk to a red circle"))
+    stack.episode(actions)
+    middle, running = stack.world.snapshot(), stack.route(rng, 2)
+    stack.command("walk to a blue circle", PARSER.parse("walk to a blue circle"))
+    stack.start()
+    for action in running:
+        stack.act(action)
+    bag = tmp_path / "rosbag2"
+    rosbag2_copy(_record(stack, tmp_path / "recorded", recorder=False), bag, files=2)
+
+    reader = BagEpisodeReader(bag, include_incomplete=True)
+    assert [(r.episode, r.outcome) for r in reader.records()] == [
+        (_live("walk to a red circle", situation, actions), es.COMPLETE),
+        (_live("walk to a blue circle", middle, running), es.PREEMPTED)]
+    assert reader.report.complete and reader.report.outcomes == {es.PREEMPTED: 1}
+    assert [r.episode for r in BagEpisodeReader(bag).records()] == [_live("walk to a red circle", situation, actions)]
+
+    (bag / "metadata.yaml").unlink()  # the recorder was killed: its last file may miss messages
+    reader = BagEpisodeReader(bag, include_incomplete=True)
+    assert [r.outcome for r in reader.records()] == [es.COMPLETE]
+    assert reader.report.drop_reasons == {"no end report (the recording stopped first)": 1}

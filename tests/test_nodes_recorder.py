@@ -5,6 +5,7 @@ import re
 import time
 
 import pytest
+import rclpy
 import yaml
 from actionlib_msgs.msg import GoalStatus
 from std_msgs.msg import String
@@ -31,7 +32,7 @@ from msg_adapters import (
     text_to_cdr,
 )
 
-from ros_helpers import in_process_stack, parameters
+from ros_helpers import fresh_domain_id, in_process_stack, parameters
 
 WALK, TURN, EOS = Action.WALK, Action.TURN_LEFT, Action.EOS
 TIMEOUT = 30.0
@@ -298,3 +299,20 @@ def test_the_bag_being_recorded_is_refused_as_a_new_bag_dir(recorder, tmp_path):
     recorder.destroy_node()
     records, report = read(tmp_path / "bag")
     assert len(records) == 2 and report.complete and read_bag_info(tmp_path / "bag").episodes == 2
+
+
+def test_ctrl_c_mid_episode_closes_the_bag_with_the_episode_preempted(tmp_path):
+    """rclpy's SIGINT handler shuts the context down before the node is destroyed: the
+    recorder cannot publish its last status lines then, and still closes a whole bag."""
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=fresh_domain_id())
+    recorder = EpisodeRecorderNode(context=context, parameter_overrides=parameters(bag_dir=str(tmp_path / "bag")))
+    feed = Feed(recorder)
+    feed.joined()
+    feed.report(1, es.ACTIVE)
+    feed.act(Action.TURN_LEFT)
+    context.shutdown()
+    recorder.destroy_node()
+    [record], report = read(tmp_path / "bag", include_incomplete=True)
+    assert (record.outcome, record.episode.actions) == (es.PREEMPTED, (Action.TURN_LEFT,))
+    assert report.complete and read_bag_info(tmp_path / "bag").closed

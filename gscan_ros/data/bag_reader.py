@@ -125,7 +125,6 @@ class BagEpisodeReader(Iterator[Episode]):
         decode = live_decoder(graphs)
         assemblers: dict[str, EpisodeAssembler] = {}  # one per stack namespace
         lost = False
-        path = self.info.path
         window = 0 if self.info.publish_ordered else REORDER_WINDOW
         for item in publication_order(self._live_messages(), window):
             if item is STREAM_LOSS:
@@ -140,24 +139,12 @@ class BagEpisodeReader(Iterator[Episode]):
                     records=self.stacks.carries_records(item.namespace))
                 if lost:  # its stack lost data before its first message
                     assembler.lose()
-            done = assembler.feed(item)
-            if done is None or not self.stacks.is_stack(item.namespace):
-                continue
-            wanted = ((done.outcome == es.COMPLETE or self.include_incomplete)
-                      and (self.splits is None or done.header["split"] in self.splits))
-            record = self._assembled(path, item.namespace, done, graphs) if wanted else None
-            if wanted and record is None:  # a situation no World takes: it costs the episode, not the bag
-                assembler.discard(done, "its /situation is no gSCAN situation")
-                continue
-            if done.outcome == es.COMPLETE:
-                self.report.episodes_read += 1
-            else:
-                self.report.count_outcome(done.outcome)
-            if record is not None:
-                self.report.count_grid_size(record.episode.situation.grid_size)
-                yield record
+            yield from self._ended(assembler, assembler.feed(item), item.namespace, graphs)
+        # A bag its recorder closed ends the episodes still running there (a third-party
+        # recorder writes no end report for them); in one whose writer died, data may be lost.
+        closed = self.info.closed and not self.report.truncated_files
         for namespace, assembler in assemblers.items():
-            assembler.finish()
+            yield from self._ended(assembler, assembler.finish(closed=closed), namespace, graphs)
             if not self.stacks.is_stack(namespace):
                 continue  # another node's topics that share a stack topic's name and type
             for _ in range(assembler.rejected):
@@ -169,6 +156,25 @@ class BagEpisodeReader(Iterator[Episode]):
             self.report.bad_messages += assembler.bad_messages
             self.report.first_bad_message = self.report.first_bad_message or assembler.first_bad
             self.dropped_keys.update((namespace, *key) for key in assembler.dropped_keys)
+
+    def _ended(self, assembler: EpisodeAssembler, done: AssembledEpisode | None, namespace: str,
+               graphs: GraphCache) -> Iterator[RecordedEpisode]:
+        """Count the episode the assembler just ended (if any), and yield it when wanted."""
+        if done is None or not self.stacks.is_stack(namespace):
+            return
+        wanted = ((done.outcome == es.COMPLETE or self.include_incomplete)
+                  and (self.splits is None or done.header["split"] in self.splits))
+        record = self._assembled(self.info.path, namespace, done, graphs) if wanted else None
+        if wanted and record is None:  # a situation no World takes: it costs the episode, not the bag
+            assembler.discard(done, "its /situation is no gSCAN situation")
+            return
+        if done.outcome == es.COMPLETE:
+            self.report.episodes_read += 1
+        else:
+            self.report.count_outcome(done.outcome)
+        if record is not None:
+            self.report.count_grid_size(record.episode.situation.grid_size)
+            yield record
 
     def _assembled(self, path: Path, namespace: str, done: AssembledEpisode,
                    graphs: GraphCache) -> RecordedEpisode | None:

@@ -17,9 +17,14 @@ DDS source timestamp), and episodes are what the policy reports (docs/bags.md):
 - its command graph is the newest `/command_graph` before it started, its typed command
   the newest `/command`, and what a bag adds (`/episode`, keyed by the report's id) its
   split, example id and dataset fields;
-- its observations (for the training cache) are the newest `/observation` before it
-  started and one after each action; when any is missing (a recorder that lagged), the
-  reader replays the states instead.
+- its observations (for the training cache) follow the lock-step protocol: the state it
+  acts on first is the newest `/observation` before its first action (the reply to a
+  preempted episode's last action may come after the next ACTIVE report), and each
+  action's state is the first `/observation` after it, before the next action. When one
+  is missing (a recorder that lagged) or an action has two (a reset), the reader replays
+  the states instead;
+- a `/world_reset` ends what is known of the world: an episode that starts before the
+  new world's `/situation` is read has no situation and is dropped.
 
 A bag's stacks are found by their topics' names and types (`StackTopics`): each
 namespace ('' at the root) whose topics include `/episode_status`, `/action` and
@@ -50,6 +55,7 @@ REORDER_WINDOW = 4096  # messages held back to restore publication order (a reco
 MAX_PENDING_RECORDS = 1024  # `/episode` records waiting for their episode (a bound, not a limit in practice)
 
 LOSS = object()  # a marker in the message stream: data was lost here
+RECORDING_STOPPED = "the recording stopped"  # why an episode still running when its bag closed ended
 # The stack's topics (relative name -> spec, with the types it carries); anything else in a bag is context.
 STACK_TOPICS: dict[str, TopicSpec] = {spec.name.lstrip("/"): spec for spec in TOPICS.values()}
 # What a namespace carries when it holds a stack: the topics an episode is assembled from.
@@ -215,9 +221,27 @@ class _Open:
     record: dict | None
     record_lost: str | None  # why its `/episode` record may be missing (lost data, a bad record)
     damage: str | None = None  # a bad message of its own: it is dropped for this reason
-    observations: list[bytes] = field(default_factory=list)
+    observations: list[bytes] = field(default_factory=list)  # the state before each action, then the last
+    aligned: bool = True  # False: some action lacks its one reply, so `observations` cannot be trusted
     actions: list[Action] = field(default_factory=list)
     eos: bool = False
+    awaiting_reply: bool = False  # an action was published and its state has not come yet
+
+    def act(self, action: Action) -> None:
+        if self.awaiting_reply:
+            self.aligned = False  # the reply to the previous action was not recorded
+        self.actions.append(action)
+        self.awaiting_reply = True
+
+    def observe(self, observation: bytes) -> None:
+        """Take a state of the world by the lock-step protocol (docs/ros.md)."""
+        if not self.actions:  # the policy acts first on the newest state (maybe a reply that came after ACTIVE)
+            self.observations[:] = [observation]
+        elif self.awaiting_reply:
+            self.observations.append(observation)
+            self.awaiting_reply = False
+        else:
+            self.aligned = False  # a second state for one action: not a reply (a reset)
 
 
 class EpisodeAssembler:
@@ -274,15 +298,20 @@ class EpisodeAssembler:
                 if value is Action.EOS:
                     self._open.eos = True
                 else:
-                    self._open.actions.append(value)
+                    self._open.act(value)
         elif topic == "observation":
             self._observation = value
             if self._open is not None and self._keep_observations:
-                self._open.observations.append(value)
+                self._open.observe(value)
         elif topic == "situation":
             self._situation, self._since_situation = (message.publish_ns, value), []
         elif topic == "world_reset":
-            self._since_situation = []  # the world ignores what was sent before; its new state follows
+            # The world ignores what was sent before, and the old world's state is no start
+            # for the next episode: its new situation and observation follow.
+            self._situation = self._observation = None
+            self._since_situation = []
+            if self._open is not None:
+                self._open.aligned = False
         elif topic == "command_graph":
             self._graph = value
         elif topic == "command":
@@ -309,9 +338,22 @@ class EpisodeAssembler:
         self._situation = self._graph = self._command = self._observation = None
         self._since_situation = []
 
-    def finish(self) -> None:
-        """The bag ended: an episode still open never reported its end."""
-        self._drop("no end report (the recording stopped first)")
+    def finish(self, *, closed: bool) -> AssembledEpisode | None:
+        """The bag ended. An episode still open never reported its end: when the bag was
+        `closed` (its recorder stopped, as `ros2 bag record` does on Ctrl-C) it ended there,
+        and is returned PREEMPTED, as our recorder reports it; in a bag whose writer died
+        what followed may be lost, so it is dropped."""
+        if self._open is None:
+            return None
+        if not closed:
+            self._drop("no end report (the recording stopped first)")
+            return None
+        episode, self._open = self._open, None
+        report = es.EpisodeStatus(episode.report.episode_id, episode.report.start_ns, es.PREEMPTED,
+                                  f"{episode.report.text!r}: {RECORDING_STOPPED}")
+        done = self._assemble(episode, report, self._span)
+        self._span = 0
+        return done
 
     def discard(self, episode: AssembledEpisode, reason: str) -> None:
         """An episode it ended that the reader could not build after all: dropped for `reason`."""
@@ -426,7 +468,7 @@ class EpisodeAssembler:
         if report.outcome != es.COMPLETE:
             header["outcome"] = report.outcome
         states = len(episode.actions) + 1
-        observations = episode.observations if len(episode.observations) == states else None
+        observations = episode.observations if episode.aligned and len(episode.observations) == states else None
         return AssembledEpisode(header, episode.actions, episode.graph_json,
                                 observations if self._keep_observations else None, report.outcome, messages,
                                 report)

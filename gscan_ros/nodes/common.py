@@ -179,6 +179,8 @@ class StatusReporter:
         self._log_throttled(self._publish(text, DiagnosticStatus.ERROR), self._node.get_logger().error)
 
     def publish_diagnostics(self) -> None:
+        if not self._node.context.ok():  # shut down (Ctrl-C) before the node is destroyed
+            return
         values = {"rejected inputs": self._rejected, "internal errors": self._errors, **self._counters()}
         status = DiagnosticStatus(
             level=self._level, name=self._node.get_fully_qualified_name(), message=self._message,
@@ -190,7 +192,8 @@ class StatusReporter:
     def _publish(self, text: str, level: bytes) -> str:
         """Publish the line on `status` and take its level; returns the line."""
         line = self._line(text)
-        self._pub.publish(text_to_cdr(f"{self._node.get_name()}: {line}"))
+        if self._node.context.ok():  # after Ctrl-C the node still ends its work: the log keeps the line
+            self._pub.publish(text_to_cdr(f"{self._node.get_name()}: {line}"))
         changed = level != self._level
         self._level, self._message = level, line
         if changed:
@@ -223,6 +226,9 @@ def report_failure(node: Node, exc: Exception, where: str, context: str = "") ->
     Anything else is a bug in gscan_ros: the traceback goes to the log and a short line to
     `status` (ERROR).
     """
+    if not node.context.ok():  # Ctrl-C came while the callback ran: its publishers are gone with the context
+        node.get_logger().info(f"{where} stopped by the shutdown ({type(exc).__name__}: {exc})")
+        return
     if isinstance(exc, GscanError):
         node.status.reject(f"{context}{exc}")
         return

@@ -30,6 +30,7 @@ from gscan_ros import interface
 from gscan_ros.data.bag import LIVE_SPLIT, BagWriter
 from gscan_ros.data.bag_metadata import EPISODE_FORMAT_VERSION
 from gscan_ros.data.bag_schema import EPISODE, TOPICS
+from gscan_ros.data.episode_assembly import RECORDING_STOPPED
 from gscan_ros.errors import DatasetFormatError, GscanError
 from gscan_ros.nodes.common import StatusReporter, describe, guarded, msg_class, qos_profile, run, validated
 from msg_adapters import cdr_to_episode_status, episode_status_to_cdr, text_to_cdr
@@ -182,9 +183,11 @@ class EpisodeRecorderNode(Node):
         self._running.clear()
 
     def destroy_node(self) -> None:
-        self._stop_running(self._writer, "the recording stopped")
-        self._writer.close()
-        super().destroy_node()
+        try:
+            self._stop_running(self._writer, RECORDING_STOPPED)
+        finally:
+            self._writer.close()
+            super().destroy_node()
 
 
 def main(args: list[str] | None = None) -> int:

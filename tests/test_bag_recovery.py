@@ -11,10 +11,21 @@ from mcap.reader import make_reader
 from mcap.records import Message
 from mcap.stream_reader import StreamReader, breakup_chunk
 
-from gscan_ros.data.bag import EPISODE_PERIOD_NS, STEP_NS, BagWriter, iter_bag_episodes, read_bag_info, write_bag
+from gscan_ros.cli import main
+from gscan_ros.data.bag import (
+    EPISODE_PERIOD_NS,
+    STEP_NS,
+    BagWriter,
+    iter_bag_episodes,
+    read_bag_info,
+    repair_bag,
+    write_bag,
+)
+from gscan_ros.data.bag_cache import load_episode_cache
 from gscan_ros.errors import DatasetFormatError
 
 from bag_support import (
+    ROSBAG2_NAME,
     copy_bag,
     damaged_copy,
     data_end,
@@ -299,6 +310,100 @@ def test_mcap_files_metadata_does_not_list_are_read_with_a_warning(rosbag2_bag, 
         assert list(reader) == episodes
     assert f"does not list 1 .mcap file(s) of the folder ({unlisted})" in caplog.text
     assert not reader.info.closed  # metadata.yaml's counts leave the file out
+
+
+@pytest.fixture(scope="module")
+def split_bag(tmp_path_factory, small_chunk_bag):
+    """`small_chunk_bag` as `ros2 bag record` splits it: twelve files `_0` .. `_11`."""
+    bag = tmp_path_factory.mktemp("split") / "bag"
+    rosbag2_copy(small_chunk_bag, bag, 12)
+    return bag
+
+
+def without_split_file(split_bag: Path, bag: Path, n: int, *, metadata: bool) -> tuple[Path, set[int]]:
+    """A copy of `split_bag` without its file `_<n>` (and without metadata.yaml unless
+    `metadata`): that file, and the ids of the episodes with a message in it."""
+    shutil.copytree(split_bag, bag)
+    gone = bag / f"{ROSBAG2_NAME}_{n}.mcap"
+    with open(gone, "rb") as f:
+        hit = {m.log_time // EPISODE_PERIOD_NS for _, _, m in make_reader(f).iter_messages(log_time_order=False)}
+    gone.unlink()
+    if not metadata:
+        (bag / "metadata.yaml").unlink()
+    return gone, hit
+
+
+MISSING = pytest.mark.parametrize("metadata", [True, False], ids=["listed in metadata.yaml", "numbering gap"])
+
+
+@MISSING
+def test_a_missing_split_file_is_lost_data_at_its_place(split_bag, episodes, tmp_path, caplog, metadata):
+    """`_5` of `_0` .. `_11` is gone: the other files are read, the episodes with a message in
+    it are dropped (none stitched across the gap), and the report names the file."""
+    bag = tmp_path / "bag"
+    gone, hit = without_split_file(split_bag, bag, 5, metadata=metadata)
+    assert read_bag_info(bag).missing == (gone,)
+    with caplog.at_level(logging.WARNING, logger="gscan_ros.data.bag"):
+        reader = iter_bag_episodes(bag)
+        recovered = list(reader)
+    assert recovered == [e for i, e in enumerate(episodes) if i not in hit]
+    assert recovered[0] == episodes[0] and recovered[-1] == episodes[-1]
+    report = reader.report
+    assert report.missing_files == [gone] and not report.truncated and not report.corrupt
+    assert not report.complete and report.state() == "missing files"
+    assert report.drop_reasons.get("cut by lost data") == 1 and report.lost_episodes >= 1
+    assert f"missing files: recovered {len(recovered)} complete episodes" in report.summary()
+    assert f"1 storage file(s) missing: {gone.name}" in report.summary()
+    assert gone.name in caplog.text and report.summary() in caplog.text
+    kept = sum(map(messages_of, recovered))
+    if metadata:  # metadata.yaml counts what was recorded: the loss is exact
+        assert report.messages_exact and report.lost_messages == read_bag_info(split_bag).message_count - kept
+    else:
+        assert not report.messages_exact and report.lost_messages > 0
+
+
+@MISSING
+def test_a_bag_with_a_missing_split_file_fails_verify_and_repairs(split_bag, episodes, tmp_path, capsys, metadata):
+    bag = tmp_path / "bag"
+    gone, hit = without_split_file(split_bag, bag, 5, metadata=metadata)
+    recovered = [e for i, e in enumerate(episodes) if i not in hit]
+    try:
+        code = main(["verify", str(bag), "--quiet"])
+    except SystemExit as exc:
+        code = exc.code
+    [lost] = [line for line in capsys.readouterr().err.splitlines() if "lost data" in line]
+    assert code == 1 and lost.startswith("gscan-ros verify: error: lost data:") and gone.name in lost
+    cache = load_episode_cache(bag)  # the missing file is part of its key, and the loss is recorded
+    assert len(cache) == len(recovered) and not cache.complete and gone.name in cache.source["summary"]
+    result = repair_bag(bag, tmp_path / "repaired")
+    assert result.source.missing_files == [gone] and gone.name in result.summary()
+    assert result.episodes == len(recovered)
+    info = read_bag_info(tmp_path / "repaired")
+    assert info.closed and info.missing == () and gone.name in info.custom["gscan_ros.repair"]
+    again = iter_bag_episodes(tmp_path / "repaired")
+    assert list(again) == recovered and again.report.complete
+
+
+def test_numbering_gaps_count_from_the_first_split_file(split_bag, tmp_path):
+    bag = tmp_path / "bag"
+    gone, _ = without_split_file(split_bag, bag, 0, metadata=False)
+    info = read_bag_info(bag)
+    assert info.missing == (gone,) and info.mcap_paths[0] == gone and len(info.mcap_paths) == 12
+    assert f"{gone.name} missing from their numbering" in info.warnings[0]
+    # A number that is no split's (a date stamp) is a name: nothing is missing before it.
+    other = tmp_path / "other"
+    other.mkdir()
+    shutil.copy(bag / f"{ROSBAG2_NAME}_1.mcap", other / "run_20250101.mcap")
+    assert read_bag_info(other).missing == ()
+
+
+def test_a_bag_none_of_whose_listed_files_exist_is_refused(split_bag, tmp_path):
+    bag = tmp_path / "bag"
+    shutil.copytree(split_bag, bag)
+    for path in bag.glob("*.mcap"):
+        path.unlink()
+    with pytest.raises(DatasetFormatError, match=r"metadata.yaml: all 12 storage files are missing \(rosbag2_"):
+        read_bag_info(bag)
 
 
 @pytest.mark.parametrize("key, value", [("gscan_ros.episodes", "many"), ("gscan_ros.splits", "'{bad'"),

@@ -65,6 +65,7 @@ def run_repair(args: argparse.Namespace) -> int:
         print("lost: nothing")
     else:
         details = [f"{count} {what}" for count, what in (
+            (len(source.missing_files), "missing storage file(s)"),
             (source.lost_chunks, "unreadable chunk(s)"),
             (len(source.corrupt_regions), "damaged region(s)"),
             (len(source.truncated_files), "file(s) without MCAP footer"),

@@ -3,8 +3,8 @@
 Decoding a bag (CDR + JSON + situations) runs at MCAP-reader speed; training reads
 the same bag many times. The first `load_episode_cache` decodes the bag and stores
 plain arrays in `<bag_dir>/.cache/episodes.npz` (no pickles); later calls load them
-as long as the key (format version, each MCAP file's size and mtime, a hash of
-metadata.yaml) still matches. A cache file that cannot be read (empty, torn, not an
+as long as the key (format version, each MCAP file's size and mtime or its absence, a
+hash of metadata.yaml) still matches. A cache file that cannot be read (empty, torn, not an
 npz, inconsistent arrays) is rebuilt with a warning. The cache records what the
 decode lost: a cache built from a damaged bag (truncated, corrupt, episodes lost)
 warns each time it is loaded, so the loss is not hidden by later fast loads.
@@ -138,8 +138,12 @@ def _cache_key(bag_dir: Path) -> str:
     info = read_bag_info(bag_dir)
     metadata = bag_dir / METADATA_FILE
     parts = [f"v{CACHE_VERSION}", hashlib.sha256(metadata.read_bytes()).hexdigest() if metadata.is_file() else "-"]
-    for path in info.mcap_paths:
-        stat = path.stat()
+    for path in info.mcap_paths:  # a missing storage file (lost data) is part of the key too
+        try:
+            stat = path.stat()
+        except OSError:
+            parts.append(f"{path.name}:missing")
+            continue
         parts.append(f"{path.name}:{stat.st_size}:{stat.st_mtime_ns}")
     return "|".join(parts)
 

@@ -9,6 +9,10 @@ still recording / was killed (`status: recording`).
 `ros2 bag record` writes metadata.yaml only when it closes the bag, so a killed
 recorder leaves its .mcap files alone; such a folder is still read, from its files
 in name order (each MCAP file holds its channels and schemas), with a warning.
+
+A storage file that should be there and is not (listed in metadata.yaml, or a gap in the
+`<name>_<n>.mcap` numbering of a folder without one) is lost data at its place in the
+file order (`BagInfo.missing`): readers mark the loss there and read the other files.
 """
 from __future__ import annotations
 
@@ -41,6 +45,10 @@ STATUS_CLOSED = "closed"
 MAX_METADATA_BYTES = 16 << 20
 """Largest metadata.yaml: ~830 bytes per topic and ~200 per storage file, so 1,000 topics
 and a week split every minute (10,080 files) are ~3 MB."""
+MAX_SPLIT_NUMBER = 999_999
+"""Highest `<name>_<n>.mcap` number taken for a rosbag2 split (a week split every second
+is 604,800): a larger one (a date stamp) is a name, and no gap is inferred before it."""
+_SPLIT_FILE = re.compile(r"(.+_)(0|[1-9]\d*)\.mcap")  # rosbag2 numbers without leading zeros
 
 
 @dataclass(frozen=True)
@@ -55,7 +63,7 @@ class BagInfo:
     """What `metadata.yaml` says about a bag (counts are final only when `closed`)."""
 
     path: Path
-    mcap_paths: tuple[Path, ...]
+    mcap_paths: tuple[Path, ...]  # every storage file in read order, the `missing` ones at their place
     version: int
     message_count: int
     start_ns: int
@@ -63,7 +71,10 @@ class BagInfo:
     topics: dict[str, TopicInfo]
     custom: dict[str, str] = field(default_factory=dict)
     counts_final: bool = True  # False: metadata.yaml is missing, or does not list every storage file
-    warnings: tuple[str, ...] = ()  # what readers log: missing metadata, unlisted files, custom data ignored
+    warnings: tuple[str, ...] = ()  # what readers log: missing metadata or files, unlisted files, custom data ignored
+    # Storage files that should be there but are absent (listed in metadata.yaml, or a gap in
+    # the `_<n>` numbering of a folder without it): their data is lost (`McapScan` yields LOSS).
+    missing: tuple[Path, ...] = ()
 
     @property
     def closed(self) -> bool:
@@ -164,17 +175,24 @@ def read_bag_info(bag_dir: str | os.PathLike) -> BagInfo:
     A folder of .mcap files without metadata.yaml (a killed `ros2 bag record`) reads from
     its files in name order, and .mcap files that metadata.yaml does not list are read
     after those it lists; either way the counts are not final (`closed` is False) and
-    `warnings` says so. Malformed `gscan_ros.*` custom data, advisory only, is ignored
-    with a warning."""
+    `warnings` says so. A storage file metadata.yaml lists, or one missing from the
+    `<name>_<n>.mcap` numbering of a folder without it, that is absent stays in
+    `mcap_paths` at its place and is named in `missing` and `warnings`: its data is lost,
+    the rest reads (refused only when no file metadata.yaml lists is there). Malformed
+    `gscan_ros.*` custom data, advisory only, is ignored with a warning."""
     bag_dir = Path(bag_dir)
     path = bag_dir / METADATA_FILE
     on_disk = sorted((p for p in bag_dir.glob("*.mcap") if p.is_file()), key=_storage_order)
     if not path.is_file():
         if not on_disk:
             raise DatasetFormatError(f"{bag_dir}: not a rosbag2 bag (no {METADATA_FILE} and no .mcap files)")
-        return BagInfo(bag_dir, tuple(on_disk), 0, 0, 0, 0, {}, counts_final=False, warnings=(
+        gaps = _numbering_gaps(bag_dir, on_disk)
+        lost = (f"; {_names(gaps)} missing from their numbering (lost data, marked where it was)"
+                if gaps else "")
+        return BagInfo(bag_dir, tuple(sorted((*on_disk, *gaps), key=_storage_order)), 0, 0, 0, 0, {},
+                       counts_final=False, missing=gaps, warnings=(
             f"{bag_dir}: no {METADATA_FILE} (its recorder did not close the bag): reading its "
-            f"{len(on_disk)} .mcap file(s) in name order; `gscan-ros bag repair {bag_dir} --out NEW` "
+            f"{len(on_disk)} .mcap file(s) in name order{lost}; `gscan-ros bag repair {bag_dir} --out NEW` "
             f"writes a complete bag with one",))
     try:
         info = read_yaml(path, str(path), DatasetFormatError, MAX_METADATA_BYTES)["rosbag2_bagfile_information"]
@@ -200,15 +218,20 @@ def read_bag_info(bag_dir: str | os.PathLike) -> BagInfo:
         raise DatasetFormatError(f"{path}: malformed rosbag2 metadata ({shortened(str(exc))})") from None
     if not mcap_paths:
         raise DatasetFormatError(f"{path}: relative_file_paths is empty")
-    for mcap_path in mcap_paths:
-        if not mcap_path.is_file():
-            raise DatasetFormatError(f"{path}: storage file {shortened(mcap_path.name)} is missing")
+    missing = tuple(p for p in mcap_paths if not p.is_file())
+    if len(missing) == len(mcap_paths):  # nothing to recover
+        raise DatasetFormatError(f"{path}: storage file {shortened(missing[0].name)} is missing" if len(missing) == 1
+                                 else f"{path}: all {len(missing)} storage files are missing ({_names(missing)})")
     custom, warnings = _custom_data(info.get("custom_data"), path)
     fmt = custom.get("gscan_ros.format_version", str(EPISODE_FORMAT_VERSION))
     if fmt not in {str(v) for v in range(EPISODE_FORMAT_VERSION + 1)}:
         raise DatasetFormatError(
             f"{path}: episode format version {shortened(fmt)} is newer than supported ({EPISODE_FORMAT_VERSION})"
         )
+    if missing:
+        warnings.append(f"{path} lists {len(missing)} storage file(s) that are missing ({_names(missing)}): "
+                        f"their data is lost (marked where it was); reading the other files; "
+                        f"`gscan-ros bag repair {bag_dir} --out NEW` writes a complete bag of what is left")
     unlisted = [p for p in on_disk if p not in mcap_paths]
     if unlisted:
         names = ", ".join(p.name for p in unlisted[:3]) + (", ..." if len(unlisted) > 3 else "")
@@ -216,13 +239,30 @@ def read_bag_info(bag_dir: str | os.PathLike) -> BagInfo:
                         f"them after the ones it lists; `gscan-ros bag repair {bag_dir} --out NEW` writes a bag "
                         f"whose {METADATA_FILE} lists everything")
     return BagInfo(bag_dir, mcap_paths + tuple(unlisted), version, message_count, start_ns, duration_ns, topics,
-                   custom, counts_final=not unlisted, warnings=tuple(warnings))
+                   custom, counts_final=not unlisted, warnings=tuple(warnings), missing=missing)
 
 
 def _storage_order(path: Path) -> tuple[str, int]:
     """rosbag2's order of split files: `<name>_<n>.mcap` by n (so `_10` follows `_9`)."""
     match = re.fullmatch(r"(.*?)(\d+)\.mcap", path.name)
     return (match.group(1), int(match.group(2))) if match else (path.stem, -1)
+
+
+def _numbering_gaps(bag_dir: Path, on_disk: list[Path]) -> tuple[Path, ...]:
+    """The split files absent from the numbering of the files on disk: for each `<name>_`,
+    every `<name>_<n>.mcap` from n = 0 (rosbag2's first) up to the highest one there."""
+    numbers: dict[str, set[int]] = {}
+    for path in on_disk:
+        match = _SPLIT_FILE.fullmatch(path.name)
+        if match and int(match.group(2)) <= MAX_SPLIT_NUMBER:
+            numbers.setdefault(match.group(1), set()).add(int(match.group(2)))
+    return tuple(sorted((bag_dir / f"{name}{n}.mcap" for name, present in numbers.items()
+                         for n in range(max(present)) if n not in present), key=_storage_order))
+
+
+def _names(paths) -> str:
+    """'a_5.mcap, a_6.mcap, a_7.mcap, ...' (the first three)."""
+    return ", ".join(shortened(p.name) for p in paths[:3]) + (", ..." if len(paths) > 3 else "")
 
 
 def _custom_data(custom, path: Path) -> tuple[dict[str, str], list[str]]:

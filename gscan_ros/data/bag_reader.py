@@ -75,8 +75,9 @@ class BagEpisodeReader(Iterator[Episode]):
     writer was killed (no summary, torn last chunk) still yields every complete episode,
     and a damaged chunk costs only the episodes that had messages in it: reading goes on
     at the next intact chunk, and an episode cut by lost data is dropped (counted in the
-    report), never assembled from the pieces around the damage. A file that is not MCAP
-    raises one DatasetFormatError naming the file.
+    report), never assembled from the pieces around the damage. A storage file that is
+    missing (`BagInfo.missing`) is lost data at its place in the file order, recorded in
+    `report.missing_files`. A file that is not MCAP raises one DatasetFormatError naming the file.
     """
 
     def __init__(
@@ -311,7 +312,8 @@ class BagEpisodeReader(Iterator[Episode]):
 
     # -- MCAP ------------------------------------------------------------------------------
     def _scan(self) -> Iterator[tuple[McapScan, tuple | object]]:
-        """(the file's McapScan, one of its items) over every storage file; the item is `LOSS` where data was lost."""
+        """(the file's McapScan, one of its items) over every storage file in order; the item is
+        `LOSS` where data was lost, a missing storage file included (`McapScan`, `BagInfo.missing`)."""
         for path in self.info.mcap_paths:
             scan = McapScan(path, self.report, self.info)
             for item in scan.items():

@@ -30,6 +30,7 @@ class BagReadReport:
     grid_sizes: dict[int, int] = field(default_factory=dict)  # grid size -> episodes read (the selected ones)
     discarded_messages: int = 0  # read but outside any complete episode
     truncated_files: list[Path] = field(default_factory=list)  # ended before the MCAP footer
+    missing_files: list[Path] = field(default_factory=list)  # storage files of the bag that are absent (all lost)
     unread_bytes: int = 0  # trailing bytes that held no complete record
     corrupt_regions: list[tuple[Path, int, int]] = field(default_factory=list)  # damaged bytes [start, end) skipped
     lost_chunks: int = 0  # MCAP chunks that could not be read (damaged, or torn off by a truncation)
@@ -45,9 +46,13 @@ class BagReadReport:
         return bool(self.corrupt_regions)
 
     @property
+    def missing(self) -> bool:
+        return bool(self.missing_files)
+
+    @property
     def damaged(self) -> bool:
-        """A file ended early or held damaged bytes (even when no episode was lost)."""
-        return self.truncated or self.corrupt
+        """A file ended early, held damaged bytes or is missing (even when no episode was lost)."""
+        return self.truncated or self.corrupt or self.missing
 
     @property
     def messages_exact(self) -> bool:
@@ -102,13 +107,17 @@ class BagReadReport:
         return not (self.damaged or self.lost_episodes or self.lost_messages)
 
     def state(self) -> str:
-        """'intact', 'truncated', 'corrupt' or 'corrupt and truncated'."""
-        parts = [word for word, flag in (("corrupt", self.corrupt), ("truncated", self.truncated)) if flag]
+        """'intact', or what is wrong: 'corrupt', 'truncated', 'missing files', joined by 'and'."""
+        parts = [word for word, flag in (("corrupt", self.corrupt), ("truncated", self.truncated),
+                                         ("missing files", self.missing)) if flag]
         return " and ".join(parts) or "intact"
 
     def summary(self) -> str:
         """One line: state, what was recovered, what was lost."""
         details = []
+        if self.missing:
+            names = ", ".join(p.name for p in self.missing_files[:3]) + (", ..." if len(self.missing_files) > 3 else "")
+            details.append(f"{len(self.missing_files)} storage file(s) missing: {names}")
         if self.corrupt:
             details.append(
                 f"{len(self.corrupt_regions)} damaged region(s), {self.skipped_bytes} bytes skipped"

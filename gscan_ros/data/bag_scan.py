@@ -93,8 +93,9 @@ class McapScan:
     length fits, its data decompresses to the declared size and matches its CRC). A
     file that ends inside a record with nothing valid after it is *truncated*; damaged
     bytes before the end of the data are *corrupt*; an empty file (0 bytes) is truncated
-    at its start, as one cut inside the magic. A file that is not MCAP, or not profile
-    `ros2`, raises a DatasetFormatError naming it.
+    at its start, as one cut inside the magic; a file that is absent (a storage file of the
+    bag that is missing) is one `LOSS`, recorded in `report.missing_files`. A file that is
+    not MCAP, or not profile `ros2`, raises a DatasetFormatError naming it.
 
     `channels` / `schemas` (by id) fill in as they are read; when the footer is intact,
     the summary's copies are known from the start, so messages after a lost chunk that
@@ -114,6 +115,10 @@ class McapScan:
 
     # -- public -----------------------------------------------------------------------------
     def items(self) -> Iterator[tuple | object]:
+        if not self.path.is_file():  # a storage file of the bag that is absent: all it held is lost
+            self.report.missing_files.append(self.path)
+            yield LOSS
+            return
         size = self.path.stat().st_size
         if size == 0:  # created, then nothing written (a recorder killed as it split): torn at its start
             yield LOSS

@@ -38,8 +38,10 @@ log = logging.getLogger(__name__)
 
 PARTIAL = ".partial-"
 _PARTIAL_NAME = re.compile(rf"\..+{re.escape(PARTIAL)}(\d+)(\.\w+)?")
-# OSErrors of writing that are the machine's state, not a bug: reported as one line.
-WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.EACCES, errno.EPERM})
+# OSErrors of writing that are the machine's state, not a bug: reported as one line
+# (ENOENT: a folder where no file can be made, such as /proc).
+WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.EACCES, errno.EPERM,
+                          errno.ENOENT})
 
 
 class OutputError(GscanError):
@@ -88,6 +90,16 @@ def check_targets(paths: Iterable[str | os.PathLike], *, overwrite: bool, flag: 
         one = len(existing) == 1
         raise OutputError(f"{flag}: {', '.join(existing)} {'exists' if one else 'exist'} already; pass --overwrite "
                           f"to replace {'it' if one else 'them'}")
+
+
+def file_in_the_way(folder: str | os.PathLike) -> Path | None:
+    """The file at `folder` or at the nearest of its parents that exists, which keeps a
+    writer from making `folder` or writing into it; None when nothing is in the way."""
+    path = Path(folder)
+    for p in (path, *path.parents):
+        if p.exists():
+            return None if p.is_dir() else p
+    return None
 
 
 def refuse_links(paths: Iterable[str | os.PathLike]) -> None:

@@ -31,6 +31,21 @@ MKL_SHIM_SWITCH = "GSCAN_MKL_SHIM"  # "0": start subprocesses without the shim
 _default_threads: int | None = None  # torch's intra-op threads before the first `configure_torch`
 
 
+def available_cpus() -> int:
+    """CPUs this process may run on (its affinity mask, else the machine's count)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def check_cpu_count(count: int, what: str, error: type[GscanError] = GscanError) -> int:
+    """`count` (worker processes, torch threads), unless it is more than the CPUs available:
+    more buys nothing, and torch's thread pool kills the process (SIGSEGV) when asked for
+    100,000 threads. The one rule for `--workers`, `--threads` and the `threads` setting."""
+    cpus = available_cpus()
+    if count > cpus:
+        raise error(f"{count} {what} but only {cpus} CPU(s) available; use at most {cpus}")
+    return count
+
+
 def configure_torch(threads: int = 0) -> None:
     """Set intra-op threads (0 = torch's default: the count torch had before the first call,
     so a process that set another one can go back), flush denormal floats to zero and keep

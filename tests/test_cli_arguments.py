@@ -2,14 +2,18 @@
 line on stderr naming the argument, no traceback, nothing written (issue: tracebacks on
 bad arguments). The CLI runs in-process from a scratch working directory, so a default
 output folder (runs/, out/) written by mistake would show up in the snapshot."""
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
 import torch
 
 from gscan_ros.cli import SUBCOMMANDS, main
-from gscan_ros.cli.args import available_cpus
 from gscan_ros.errors import CheckpointError
 from gscan_ros.model.checkpoint import read_checkpoint, save_checkpoint
 from gscan_ros.model.policy import Policy
+from gscan_ros.runtime import available_cpus
 
 from model_support import tiny_checkpoint
 
@@ -74,6 +78,10 @@ BAD_ARGUMENTS = [
     ("train --data {data} --set model.rnn_dim=-5", "rnn_dim"),
     ("train --data {data} --set model.rnn_dim=[1,2]", "rnn_dim"),
     ("train --data {data} --set model.cnn_kernels=5", "cnn_kernels"),
+    ("train --data {data} --set model.rnn_dim=100000", "rnn_dim must be at most 512"),
+    ("train --data {data} --set model.rnn_layers=1000", "rnn_layers must be at most 8"),
+    ("train --data {data} --set model.cnn_kernels=[100001]", "odd integers in [1, 31]"),
+    (f"train --data {{data}} --set threads={CPUS + 1}", f"only {CPUS} CPU(s)"),
     ("train --data {data} --config {yaml_list}", "batch_size"),
     ("train --data {data} --config {yaml_model_list}", "model"),
     ("train --data {data} --config {yaml_latin1}", "UTF-8"),
@@ -84,6 +92,7 @@ BAD_ARGUMENTS = [
     ("evaluate --data {data} --max-examples -3", "--max-examples"),
     ("evaluate --data {data} --batch-size 0", "--batch-size"),
     ("evaluate --data {data} --threads -4", "--threads"),
+    (f"evaluate --data {{data}} --threads {CPUS + 1}", f"only {CPUS} CPU(s)"),
     ("evaluate --data {data} --seed -1", "--seed"),
     ("evaluate --data {data} --out {file}", "--out"),
     ("evaluate --data {data} --device tpu", "--device"),
@@ -111,7 +120,12 @@ BAD_ARGUMENTS = [
     ("explain --max-columns 1 --out {tmp}/a.png", "--max-columns"),
     ("explain --metrics --data {data} --max-examples -1", "--max-examples"),
     ("explain --out {png}", "--overwrite"),
+    ("explain --progression {file} --out {tmp}/a.png", "--progression"),
+    ("explain --progression {missing} --out {tmp}/a.png", "--progression"),
+    ("explain --metrics --data {data} --progression {file}", "--progression"),
     ("explain --out {tmp}/a.png --device gpu", "--device"),
+    ("explain --out /proc/a.png", "while writing /proc/a.png: No such file or directory (/proc/.a.png.lock)"),
+    (f"explain --out {{tmp}}/a.png --threads {CPUS + 1}", f"only {CPUS} CPU(s)"),
     # replay
     ("replay {missing}", "does not exist"),
     ("replay {data} --max-episodes 0", "--max-episodes"),
@@ -261,3 +275,17 @@ def test_policy_node_refuses_a_bad_checkpoint_at_start(checkpoint_dir, capsys, m
     assert policy_node.main(["--ros-args", "-p", f"checkpoint:={path}"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "empty vocabulary" in err[0]
+
+
+@pytest.mark.parametrize("buffered", [True, False], ids=["left to the flush at exit", "unbuffered: at the print"])
+def test_a_standard_output_that_takes_no_more_is_one_line(buffered, monkeypatch):
+    """`> /dev/full`: the error of a print, or of the interpreter's flush at exit, is one line."""
+    monkeypatch.delenv("PYTHONUNBUFFERED", raising=False)
+    if not buffered:
+        monkeypatch.setenv("PYTHONUNBUFFERED", "1")
+    with open("/dev/full", "w") as full:
+        done = subprocess.run([sys.executable, "-m", "gscan_ros.cli", "parse", "walk to a red circle"], stdout=full,
+                              stderr=subprocess.PIPE, text=True, timeout=120, cwd=Path(__file__).resolve().parents[1])
+    assert done.returncode == 1
+    assert done.stderr.splitlines() == [
+        "gscan-ros parse: error: cannot write to standard output: No space left on device"]

@@ -2,6 +2,7 @@
 import json
 from collections import Counter, defaultdict
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -215,7 +216,7 @@ def _files(root) -> dict:
 
 
 def test_generate_refuses_an_existing_dataset_without_overwrite(tmp_path, capsys):
-    (tmp_path / "dataset.txt").write_text("{}")
+    (tmp_path / "dataset.txt").write_text('{"grid_size": 6}')
     (tmp_path / "train").mkdir()
     (tmp_path / "train" / "metadata.yaml").write_text("rosbag2_bagfile_information: {}\n")
     before = _files(tmp_path)
@@ -271,6 +272,37 @@ def test_generate_overwrite_keeps_foreign_files_in_a_split_bag(tmp_path, capsys)
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "thesis.tex" in err[0]
     assert _files(tmp_path) == before
+
+
+@pytest.mark.parametrize("fmt, name, text", [
+    ("txt", "manifest.json", "my notes\n"),  # the txt format never writes a manifest
+    ("txt", "manifest.json", '{"splits": {"train": 3}}'),  # JSON, not ours
+    ("mcap", "dataset.txt", "notes\n"),
+    ("txt", "dataset.txt", '{"examples": {}}'),
+])
+def test_generate_overwrite_refuses_a_users_file_of_a_datasets_name(tmp_path, capsys, fmt, name, text):
+    """--overwrite replaces only an earlier dataset's files: a file that merely bears the
+    name of one is the user's, refused in one line naming it."""
+    (tmp_path / name).write_text(text)
+    before = _files(tmp_path)
+    for overwrite in ([], ["--overwrite"]):
+        assert _generate(tmp_path, "--format", fmt, *overwrite) == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and f"{tmp_path / name} is not a" in err[0] and "Traceback" not in err[0]
+        assert _files(tmp_path) == before
+
+
+def test_generate_overwrite_replaces_an_earlier_datasets_own_files(tmp_path):
+    """The manifest of an mcap dataset and the dataset.txt of a txt one (the released
+    layout too) go with --overwrite, whichever format comes next."""
+    from gscan_ros.data.io import split_bags
+
+    assert _generate(tmp_path, "--format", "mcap") == 0
+    assert _generate(tmp_path, "--format", "txt", "--overwrite") == 0
+    assert not (tmp_path / "manifest.json").exists() and not split_bags(tmp_path)
+    (tmp_path / "dataset.txt").write_bytes((Path(__file__).parent / "fixtures/released_format.txt").read_bytes())
+    assert _generate(tmp_path, "--format", "mcap", "--overwrite") == 0
+    assert not (tmp_path / "dataset.txt").exists() and (tmp_path / "manifest.json").is_file()
 
 
 def test_k_shot_beyond_the_adverb_1_examples_is_refused_naming_the_maximum(tmp_path):

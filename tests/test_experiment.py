@@ -15,7 +15,6 @@ import pytest
 import yaml
 
 from gscan_ros.cli import main
-from gscan_ros.cli.args import available_cpus
 from gscan_ros.data.dataset import read_header
 from gscan_ros.data.io import DATASET_MANIFEST
 from gscan_ros.experiments.locks import FileLock
@@ -32,7 +31,7 @@ from gscan_ros.experiments.state import (
     work_order,
 )
 from gscan_ros.outputs import PARTIAL
-from gscan_ros.runtime import MKL_SHIM, mkl_shim_env
+from gscan_ros.runtime import MKL_SHIM, available_cpus, mkl_shim_env
 from gscan_ros.training.failures import FAILURE_KINDS
 
 REPO = Path(__file__).resolve().parents[1]
@@ -507,6 +506,9 @@ BAD_PLANS = [
      "run x_s0"),
     ({"runs": [{"name": "x", "config": "{config}", "data": "tiny", "seeds": [0], "max_eval_examples": -5}]},
      "runs[0].max_eval_examples"),
+    ({"results": "{config}"}, "results must be a folder"),
+    ({"results": "{config}/runs"}, "results must be a folder, but"),
+    ({"data_root": "{config}"}, "data_root must be a folder"),
 ]
 
 
@@ -514,7 +516,7 @@ BAD_PLANS = [
 def test_bad_plan_is_one_line_naming_the_key(tmp_path, capsys, edit, names):
     path = write_plan(tmp_path / "plan.yaml", tmp_path)
     plan = yaml.safe_load(path.read_text())
-    text = yaml.safe_dump({**plan, **edit}).replace("'{config}'", str(REPO / "configs/semantic.yaml"))
+    text = yaml.safe_dump({**plan, **edit}).replace("{config}", str(REPO / "configs/semantic.yaml"))
     path.write_text(text)
     assert experiment(path, "--dry-run") == 1
     err = capsys.readouterr().err.strip().splitlines()
@@ -761,15 +763,45 @@ def test_report_is_byte_identical_and_refuses_to_overwrite(results, tmp_path, ca
     assert "is in both" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("field, value", [("splits", {"test": 3}), ("data", ["length"]),
-                                          ("splits", {"test": {"letter": "A", "exact_match": "high"}})])
-def test_report_names_a_results_json_of_the_wrong_shape(results, tmp_path, capsys, field, value):
+@pytest.mark.parametrize("field, value, named", [
+    ("splits", {"test": 3}, "splits.test must be a mapping, got 3"),
+    ("data", ["length"], "data must be a mapping, got ['length']"),
+    ("splits", {"test": {"letter": "A", "exact_match": "high"}}, "splits.test.exact_match must be a finite number"),
+    ("splits", {"test": split("A", 50.0) | {"failures": {"no_stop": "2"}}}, "splits.test.failures.no_stop"),
+    ("best_dev_exact_match", "x", "best_dev_exact_match must be a finite number or null, got 'x'"),
+    ("title", [1], "title must be a string, got [1]"),
+    ("paper_column", ["a"], "paper_column must be a string or null, got ['a']"),
+    ("seed", 1e400, "seed must be an integer, got inf"),
+    ("data", {"split_kind": "length", "cut_off_target_length": [14]}, "data.cut_off_target_length"),
+    ("evaluation", {"max_examples": 1e400}, "evaluation.max_examples must be an integer"),
+])
+def test_report_names_a_results_json_of_the_wrong_shape(results, tmp_path, capsys, field, value, named):
     path = results[0] / "state_s0" / "results.json"
     doc = json.loads(path.read_text())
     path.write_text(json.dumps(doc | {field: value}))
     assert report(results, tmp_path / "tables.md", "--no-curves") == 1
     err = capsys.readouterr().err
-    assert f"{path}: malformed results.json" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert f"{path}: {named}" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("record, named", [
+    ({"event": "validation", "step": 1e400, "dev_exact_match": 5.0}, "step of a validation record must be an integer"),
+    ({"event": "validation", "step": 3, "dev_exact_match": "x"}, "dev_exact_match of a validation record"),
+    ({"event": "screen_end", "seed": [1]}, "seed of a screen_end record must be an integer, got [1]"),
+    (None, "cannot read {metrics}: Is a directory"),
+], ids=["step inf", "exact match a string", "seed a list", "a directory"])
+def test_report_names_a_metrics_jsonl_of_the_wrong_shape(results, tmp_path, capsys, record, named):
+    metrics = results[0] / "state_s0" / "metrics.jsonl"
+    if record is None:
+        metrics.unlink()
+        metrics.mkdir()
+    else:
+        with metrics.open("a") as f:
+            f.write(json.dumps(record) + "\n")
+    assert report(results, tmp_path / "tables.md", "--no-curves") == 1
+    err = capsys.readouterr().err
+    assert named.format(metrics=metrics) in err and str(metrics) in err and "results.json" not in err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1
 
 
 def test_committed_tables_regenerate_exactly(tmp_path, monkeypatch):

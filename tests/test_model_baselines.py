@@ -156,7 +156,9 @@ def test_checkpoint_round_trip_and_policy(tmp_path, kind):
 
 @pytest.mark.parametrize(("kind", "setting"), [("auxloss", {"target_loss_weight": -1}),
                                                ("auxloss", {"think_scorer": "bilinear"}),
-                                               ("lcgn", {"command_dim": 63}), ("lcgn", {"hidden_size": 8})])
+                                               ("lcgn", {"command_dim": 63}), ("lcgn", {"hidden_size": 8}),
+                                               ("lcgn", {"rounds": 100000}), ("seq2seq", {"hidden": 100000}),
+                                               ("auxloss", {"embedding_dim": 513})])
 def test_a_bad_model_setting_is_a_config_error(kind, setting):
     with pytest.raises(ConfigError, match=next(iter(setting))):
         TrainConfig(model_kind=kind, model=setting)

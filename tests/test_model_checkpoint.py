@@ -83,6 +83,20 @@ class Pickled:
     """A class torch's weights_only unpickler refuses (it would run code on load)."""
 
 
+def test_a_checkpoint_whose_tensor_bytes_are_corrupt_is_refused_naming_it(tmp_path):
+    """torch.load checks no CRC: 100 flipped bytes inside a tensor used to load (and
+    evaluate) as other weights without a word."""
+    from gscan_ros.model.policy import default_checkpoint_path
+
+    data = bytearray(default_checkpoint_path().read_bytes())
+    data[400_000:400_100] = bytes(b ^ 0x5A for b in data[400_000:400_100])
+    path = tmp_path / "flip.pt"
+    path.write_bytes(bytes(data))
+    with pytest.raises(CheckpointError, match=r"checkpoint '.*flip\.pt' is corrupt: the CRC of \S+/data/\d+ does not"):
+        read_checkpoint(path)
+    read_checkpoint(default_checkpoint_path())  # the file it was copied from loads
+
+
 def test_a_checkpoint_with_pickled_objects_is_refused_without_unsafe_advice(tmp_path):
     path = tmp_path / "pickled.pt"
     torch.save({"format": 1, "payload": Pickled()}, path)

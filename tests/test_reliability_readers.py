@@ -1,6 +1,7 @@
 """Readers of user files bound what they read before they allocate it, and an error
 quotes a user's value short (docs/reliability.md, "Bounded memory")."""
 import json
+import os
 import re
 import subprocess
 import sys
@@ -14,6 +15,8 @@ import torch
 
 from gscan_ros.data.bag_metadata import MAX_METADATA_BYTES, read_bag_info
 from gscan_ros.data.dataset import iter_examples
+from gscan_ros.data.generate import GenerationConfig, generate_dataset
+from gscan_ros.data.splits import ALL_TEST_SPLITS
 from gscan_ros.errors import CheckpointError, DatasetFormatError, GscanError, SituationError, quoted
 from gscan_ros.experiments.plan import PlanError, load_plan
 from gscan_ros.model.checkpoint import MAX_CHECKPOINT_ENTRIES, read_checkpoint
@@ -232,6 +235,45 @@ def test_a_checkpoint_with_too_many_files_is_refused_before_they_are_listed(tmp_
             archive.writestr(f"many/data/{i}", b"")
     with pytest.raises(CheckpointError, match=f"{MAX_CHECKPOINT_ENTRIES + 1:,} files"):
         read_checkpoint(path)
+
+
+@pytest.fixture(scope="module")
+def dataset_with_a_lost_split(tmp_path_factory):
+    """Per-split bags whose bag of one test split was cut inside its first chunk: its
+    metadata and the manifest still count its episodes, none can be read. Returns the
+    dataset, a tiny checkpoint, an intact test split and the lost one."""
+    root = tmp_path_factory.mktemp("lost_split")
+    generate_dataset(root / "data", GenerationConfig(seed=5, max_examples=60), fmt="mcap")
+    counts = json.loads((root / "data" / "manifest.json").read_text())["splits"]
+    kept, lost = [split for split in ALL_TEST_SPLITS if counts.get(split)][:2]
+    for mcap in (root / "data" / lost).glob("*.mcap"):
+        os.truncate(mcap, 3000)
+    return root / "data", tiny_checkpoint(root / "tiny.pt"), kept, lost
+
+
+def test_a_split_whose_bag_lost_every_episode_fails_the_command_naming_it(dataset_with_a_lost_split, tmp_path,
+                                                                          capsys):
+    """evaluate, replay and augment used to exit 0 without the split (a warning on stderr)."""
+    from gscan_ros.cli import main
+    from gscan_ros.data.io import iter_episodes
+
+    data, checkpoint, kept, lost = dataset_with_a_lost_split
+    evaluate = ["evaluate", "--checkpoint", checkpoint, "--data", data, "--max-examples", "1", "--quiet", "--out"]
+    commands = {
+        "evaluate --splits": [*evaluate, tmp_path / "e1", "--splits", kept, lost],
+        "evaluate": [*evaluate, tmp_path / "e2"],  # every test split the dataset counts
+        "replay": ["replay", data, "--checkpoint", checkpoint, "--splits", kept, lost],
+        "augment": ["augment", "--method", "geca", "--data", data, "--out", tmp_path / "aug", "--examples", "5",
+                    "--quiet"],
+    }
+    for name, argv in commands.items():
+        code = main([str(a) for a in argv])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 1 and len(err) == 1, (name, err)
+        assert f"no episodes of split(s) {lost} could be read from {data}" in err[0], name
+        assert f"{data / lost}: truncated" in err[0], name
+    assert not (tmp_path / "e1").exists() and not (tmp_path / "aug").exists()
+    assert list(iter_episodes(data, [kept]))  # the intact split reads
 
 
 def test_a_results_json_nested_too_deeply_is_one_report_error(tmp_path):

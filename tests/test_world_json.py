@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-from gscan_ros.errors import SituationError
+from gscan_ros.errors import QUOTE_CHARS, SituationError
 from gscan_ros.world import Heading, Position, Situation, World, WorldObject, check_object_vector, object_vector
 
 
@@ -128,13 +128,25 @@ def _set(d, path, value):
         (("placed_objects",), [], r"situation\.placed_objects: expected an object, got list"),
         (("target_object", "position", "column"), "2",
          r"situation\.target_object\.vector|not among the placed objects"),
+        # numbers beyond any grid: quoted short, never converted whole (int() refuses 4,300 digits)
+        pytest.param(("placed_objects", "3", "object", "size"), "9" * 5000,
+                     r"placed_objects\.3\.object\.size: '9{80}'… \(5,000 characters\) has more than 9 digits",
+                     id="size of 5000 digits"),
+        pytest.param(("placed_objects", "3", "position", "row"), "9" * 400,
+                     r"placed_objects\.3\.position\.row: '9{80}'… \(400 characters\) has more than 9 digits",
+                     id="row of 400 digits"),
+        pytest.param(("distance_to_target",), "9" * 400,
+                     r"situation\.distance_to_target: '9{80}'… \(400 characters\)", id="distance of 400 digits"),
+        pytest.param(("grid_size",), 10**400, r"situation\.grid_size: 10+\.\.\.0+ is not supported",
+                     id="grid_size of 401 digits"),
     ],
 )
 def test_malformed_input_names_the_field(path, value, message):
     d = copy.deepcopy(REAL_SITUATION)
     _set(d, path, value)
-    with pytest.raises(SituationError, match=message):
+    with pytest.raises(SituationError, match=message) as error:
         Situation.from_json(d)
+    assert len(str(error.value)) < 4 * QUOTE_CHARS  # one short line, whatever the value's size
 
 
 def test_non_dict_situation():

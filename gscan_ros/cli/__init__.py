@@ -9,7 +9,9 @@ validators every subcommand uses for its numbers and paths).
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
+import os
 import sys
 
 from gscan_ros import __version__
@@ -34,6 +36,9 @@ SUBCOMMANDS = (
     "bringup",
 )
 
+# What standard output meets when the file or device it was sent to takes no more (> /dev/full).
+_FULL_DISK = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG})
+
 
 def build_parser() -> argparse.ArgumentParser:
     parser = ArgumentParser(
@@ -56,7 +61,9 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        return int(args.func(args) or 0)
+        code = int(args.func(args) or 0)
+        sys.stdout.flush()  # what is left fails here, not in the interpreter's flush at exit
+        return code
     except GscanError as exc:
         print(f"gscan-ros {args.command}: error: {exc}", file=sys.stderr)
         return 1
@@ -65,6 +72,18 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     except BrokenPipeError:
         return 0
+    except OSError as exc:
+        if exc.filename is not None or exc.errno not in _FULL_DISK:  # not standard output's
+            raise
+        print(f"gscan-ros {args.command}: error: cannot write to standard output: {exc.strerror}", file=sys.stderr)
+        _discard_stdout()
+        return 1
+
+
+def _discard_stdout() -> None:
+    """Point standard output at /dev/null: what is left in its buffer would fail again, with a
+    traceback, in the interpreter's flush at exit."""
+    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
 
 
 if __name__ == "__main__":

@@ -7,11 +7,12 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 from pathlib import Path
 from typing import Callable
 
-from gscan_ros.runtime import DEVICES
+from gscan_ros.errors import GscanError
+from gscan_ros.outputs import file_in_the_way
+from gscan_ros.runtime import DEVICES, check_cpu_count
 
 
 class ArgumentParser(argparse.ArgumentParser):
@@ -20,11 +21,6 @@ class ArgumentParser(argparse.ArgumentParser):
 
     def error(self, message: str):
         self.exit(1, f"{self.prog}: error: {' '.join(message.split())} (see {self.prog} --help)\n")
-
-
-def available_cpus() -> int:
-    """CPUs this process may run on (its affinity mask, else the machine's count)."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 # ------------------------------------------------------------------------------ numbers
@@ -75,20 +71,24 @@ def add_device_argument(parser: argparse.ArgumentParser) -> None:
 
 def worker_count(text: str) -> int:
     """A number of worker processes: at least 1, at most the CPUs available."""
-    value = positive_int(text)
-    cpus = available_cpus()
-    if value > cpus:
-        raise argparse.ArgumentTypeError(f"{value} workers but only {cpus} CPU(s) available; use at most {cpus}")
-    return value
+    return _within_cpus(positive_int(text), "workers")
+
+
+def thread_count(text: str) -> int:
+    """A number of torch threads: 0 (torch's default) up to the CPUs available."""
+    return _within_cpus(nonnegative_int(text), "threads")
+
+
+def _within_cpus(count: int, what: str) -> int:
+    try:
+        return check_cpu_count(count, what)
+    except GscanError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 # -------------------------------------------------------------------------------- paths
 def existing_file(text: str) -> Path:
-    path = Path(text)
-    if not path.is_file():
-        raise argparse.ArgumentTypeError(f"{text!r} {'is a directory' if path.is_dir() else 'does not exist'}, "
-                                         "expected a file")
-    return path
+    return _existing(text, "file")
 
 
 def existing_path(text: str) -> Path:
@@ -99,14 +99,26 @@ def existing_path(text: str) -> Path:
     return path
 
 
+def existing_dir(text: str) -> Path:
+    """A directory that exists (a training run)."""
+    return _existing(text, "directory")
+
+
+def _existing(text: str, kind: str) -> Path:
+    """`text` as a path to an existing `kind` ("file" or "directory"), else what it is instead."""
+    path = Path(text)
+    if not (path.is_dir() if kind == "directory" else path.is_file()):
+        found = "is a directory" if path.is_dir() else "is a file" if path.exists() else "does not exist"
+        raise argparse.ArgumentTypeError(f"{text!r} {found}, expected a {kind}")
+    return path
+
+
 def output_dir(text: str) -> Path:
     """A directory to write into: existing, or creatable (no file in the way)."""
     path = Path(text)
-    for p in (path, *path.parents):
-        if p.exists():
-            if not p.is_dir():
-                raise argparse.ArgumentTypeError(f"{str(p)!r} is a file, not a directory")
-            return path
+    blocking = file_in_the_way(path)
+    if blocking is not None:
+        raise argparse.ArgumentTypeError(f"{str(blocking)!r} is a file, not a directory")
     return path
 
 

@@ -10,6 +10,7 @@ from gscan_ros.cli.args import (
     nonnegative_int,
     output_dir,
     positive_int,
+    thread_count,
 )
 from gscan_ros.data.splits import SPLIT_LETTERS
 
@@ -41,7 +42,8 @@ def register(subparsers) -> None:
     p.add_argument("--no-predictions", action="store_true", help="skip predictions.json")
     p.add_argument("--attention", action="store_true",
                    help="store every word's attention map per step in predictions.json (large: ~85 kB per episode)")
-    p.add_argument("--threads", type=nonnegative_int, default=0, help="torch threads (0 = torch default)")
+    p.add_argument("--threads", type=thread_count, default=0,
+                   help="torch threads (0 = torch default; at most the CPUs available)")
     p.add_argument("--seed", type=nonnegative_int, default=0, help="seed of the --max-examples subset")
     add_device_argument(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")

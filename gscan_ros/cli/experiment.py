@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import argparse
 
-from gscan_ros.cli.args import available_cpus, existing_file, output_dir, positive_int
+from gscan_ros.cli.args import existing_file, output_dir, positive_int
+from gscan_ros.runtime import available_cpus
 
 
 def worker_share(text: str) -> tuple[int, int]:

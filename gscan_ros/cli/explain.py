@@ -21,12 +21,14 @@ from pathlib import Path
 
 from gscan_ros.cli.args import (
     add_device_argument,
+    existing_dir,
     existing_file,
     existing_path,
     int_in,
     nonnegative_int,
     output_file,
     positive_int,
+    thread_count,
 )
 from gscan_ros.errors import GscanError
 from gscan_ros.user_files import read_json
@@ -58,7 +60,7 @@ def register(subparsers) -> None:
     p.add_argument("--out", type=output_file(".png", ".gif"), metavar="FILE", help="the figure, .png or .gif")
     p.add_argument("--overwrite", action="store_true", help="replace FILE if it exists")
     p.add_argument("--fps", type=int_in(1, MAX_FPS), default=2, help="GIF frames per second (default: 2)")
-    p.add_argument("--progression", type=existing_path, metavar="RUN_DIR",
+    p.add_argument("--progression", type=existing_dir, metavar="RUN_DIR",
                    help="a training run with step_<N>.pt snapshots: Fig. 4, or the metrics along training")
     p.add_argument("--max-columns", type=int_in(2, 40), default=8,
                    help="--progression: at most this many snapshots, evenly spaced (default: 8)")
@@ -68,7 +70,8 @@ def register(subparsers) -> None:
                    help="--metrics: seeded subset of N episodes per split, as `evaluate --max-examples` (0 = all; "
                         "default: 1000)")
     p.add_argument("--batch-size", type=positive_int, default=512, help="--metrics: episodes per batch (default: 512)")
-    p.add_argument("--threads", type=nonnegative_int, default=0, help="torch threads (0 = torch default)")
+    p.add_argument("--threads", type=thread_count, default=0,
+                   help="torch threads (0 = torch default; at most the CPUs available)")
     add_device_argument(p)
     p.set_defaults(func=run)
 

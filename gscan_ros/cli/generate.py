@@ -3,8 +3,9 @@ from __future__ import annotations
 
 import argparse
 
-from gscan_ros.cli.args import available_cpus, float_in, int_in, nonnegative_int, output_dir, positive_int, worker_count
+from gscan_ros.cli.args import float_in, int_in, nonnegative_int, output_dir, positive_int, worker_count
 from gscan_ros.data.splits import SPLIT_KINDS
+from gscan_ros.runtime import available_cpus
 from gscan_ros.world.types import SUPPORTED_GRID_SIZES
 
 

@@ -36,7 +36,7 @@ def register(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from gscan_ros.data.bag import iter_bag_episodes
-    from gscan_ros.data.io import select_bags
+    from gscan_ros.data.io import require_delivered, select_bags
     from gscan_ros.model.policy import Policy
     from gscan_ros.training.evaluate import evaluate_episodes
     from gscan_ros.training.failures import failure_label
@@ -45,11 +45,14 @@ def run(args: argparse.Namespace) -> int:
     if bags is None:
         raise DatasetFormatError(f"{args.bag}: not a rosbag2 bag (no metadata.yaml or .mcap files) "
                                  "nor a folder of per-split bags (<split>/metadata.yaml)")
-    readers = [iter_bag_episodes(bag, args.splits, include_incomplete=args.include_incomplete) for bag in bags]
+    readers = [iter_bag_episodes(bag, args.splits, log_losses=False, include_incomplete=args.include_incomplete)
+               for bag in bags]
     episodes = list(itertools.islice(itertools.chain.from_iterable(readers), args.max_episodes))
     if not episodes:
         summaries = "; ".join(reader.report.summary() for reader in readers)
         raise DatasetFormatError(f"{args.bag}: no complete episodes to replay ({summaries})")
+    if all(reader.report.finished for reader in readers):  # not cut short by --max-episodes
+        require_delivered(args.bag, args.splits, {episode.split for episode in episodes}, readers)
     policy = Policy.from_checkpoint(args.checkpoint)
     result = evaluate_episodes(policy, episodes, batch_size=args.batch_size)
     matched = sum(p.exact_match for p in result.predictions)
@@ -68,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
         if outcomes:
             kept = "replayed" if args.include_incomplete else "left out"
             print(f"{kept}: " + ", ".join(f"{n} {outcome}" for outcome, n in sorted(outcomes.items())))
-        for reader in readers:
-            if reader.report.lost_episodes:
-                print(f"warning: {reader.report.summary()}")
+    for reader in readers:
+        if reader.report.finished and not reader.report.complete:
+            print(f"warning: {reader.report.summary()}")
     return 0

@@ -39,12 +39,15 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from gscan_ros.training.config import TrainConfig
+    from gscan_ros.runtime import check_cpu_count
+    from gscan_ros.training.config import ConfigError, TrainConfig
     from gscan_ros.training.distributed import joined
     from gscan_ros.training.trainer import train
 
     overrides = [*args.overrides, *(["include_incomplete=true"] if args.include_incomplete else [])]
     cfg = TrainConfig.load(args.config, overrides)
+    # This machine's limit, not the config's: a run resumed elsewhere takes `--set threads=N`.
+    check_cpu_count(cfg.threads, "threads", ConfigError)
     with joined(args.device) as ranks:
         result = train(cfg, str(args.data), args.out, resume=args.resume, overwrite=args.overwrite,
                        progress=not args.quiet, device=ranks.device)

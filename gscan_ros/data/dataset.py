@@ -349,6 +349,21 @@ def _walk_examples(stream: _JsonStream, wanted: frozenset[str] | None,
             return
 
 
+_DATASET_START = re.compile(rb'\s*\{\s*"grid_size"\s*:\s*\d')
+_DATASET_START_BYTES = 4096
+
+
+def is_dataset_file(path: str | os.PathLike) -> bool:
+    """Whether the file at `path` begins as every dataset.txt does, ours and the released
+    ones (`{"grid_size": <int>`): its first bytes tell a dataset from a user's file of that
+    name without reading the rest (GBs for a full set)."""
+    try:
+        with open(path, "rb") as f:
+            return bool(_DATASET_START.match(f.read(_DATASET_START_BYTES)))
+    except OSError:
+        return False
+
+
 def read_header(path: str | os.PathLike) -> DatasetHeader:
     """The header of a dataset.txt (or of DIR/dataset.txt) without loading the examples.
 

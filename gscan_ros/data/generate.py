@@ -41,8 +41,8 @@ import numpy as np
 from gscan_ros import __version__
 from gscan_ros.data.bag_metadata import bag_owned_files
 from gscan_ros.data.commands import COMMANDS, Command
-from gscan_ros.data.dataset import DATASET_FILE, DatasetHeader, Example, write_dataset_json
-from gscan_ros.data.io import DATASET_MANIFEST, is_bag, write_manifest
+from gscan_ros.data.dataset import DATASET_FILE, DatasetHeader, Example, is_dataset_file, write_dataset_json
+from gscan_ros.data.io import DATASET_MANIFEST, MANIFEST_FORMAT, is_bag, is_manifest, write_manifest
 from gscan_ros.data.sampling import (
     ALL_OBJECTS,
     OTHER_OBJECTS_SAMPLE_PERCENTAGE,
@@ -471,34 +471,40 @@ def _check_k_shot(k_shot: int, available: int) -> None:
 def _previous_dataset(out_dir: Path, overwrite: bool, fmt: str) -> list[Path]:
     """What an earlier `generate` (or a recorder) wrote to `out_dir`: dataset.txt, <split>/
     bags, the manifest, or a bag's own files when `out_dir` is itself a bag (every reader
-    would read that bag, not the new dataset); refused without `overwrite`, and also with
-    it where something to be moved away or written over is not a dataset's own
-    (`_in_the_way`). A symbolic link where the dataset goes is always refused."""
+    would read that bag, not the new dataset); refused without `overwrite`. Something to be
+    moved away or written over that is not a dataset's own (`_in_the_way`) is refused
+    first, with `overwrite` too, and named: a user's file must never go as an old
+    dataset's. A symbolic link where the dataset goes is always refused."""
     if out_dir.exists() and not out_dir.is_dir():
         raise GscanError(f"--out {out_dir} is a file, not a directory")
     targets = [out_dir / name for name in (DATASET_FILE, DATASET_MANIFEST, *SPLIT_NAMES)]
     refuse_links(targets)
     bag = bag_owned_files(out_dir) if is_bag(out_dir) else []
     found = [p for p in targets[:2] if p.is_file()] + [p for p in targets[2:] if is_bag(p)]
-    if (found or bag) and not overwrite:
-        names = ", ".join((["a rosbag2 bag"] if bag else []) + [p.name for p in found[:3]])
-        names += ", ..." if len(found) > 3 else ""
-        raise GscanError(f"--out {out_dir} already holds a dataset ({names}); pass --overwrite to replace it")
     written = targets[:1] if fmt == "txt" else targets[1:]
     for path in dict.fromkeys([*found, *written]):  # what is moved away or written over
         problem = _in_the_way(path)
         if problem:
             raise GscanError(f"{path} {problem}; refusing to overwrite it")
+    if (found or bag) and not overwrite:
+        names = ", ".join((["a rosbag2 bag"] if bag else []) + [p.name for p in found[:3]])
+        names += ", ..." if len(found) > 3 else ""
+        raise GscanError(f"--out {out_dir} already holds a dataset ({names}); pass --overwrite to replace it")
     return found + bag
 
 
 def _in_the_way(path: Path) -> str | None:
     """Why `path`, where a dataset keeps dataset.txt, its manifest or a split bag, may not
-    be replaced (None: absent, or a dataset's own)."""
+    be replaced (None: absent, or a dataset's own: a dataset.txt that begins as one, a
+    manifest that reads as ours, a folder of nothing but a bag's files)."""
     if not path.exists():
         return None
-    if path.name in (DATASET_FILE, DATASET_MANIFEST):
-        return None if path.is_file() else "is not a file"
+    if path.name in (DATASET_FILE, DATASET_MANIFEST) and not path.is_file():
+        return "is not a file"
+    if path.name == DATASET_FILE:
+        return None if is_dataset_file(path) else 'is not a gSCAN dataset (it does not begin with {"grid_size": ...)'
+    if path.name == DATASET_MANIFEST:
+        return None if is_manifest(path) else f"is not a gscan_ros dataset manifest (format {MANIFEST_FORMAT})"
     if not path.is_dir():
         return "is not a folder"
     own = bag_owned_files(path) if is_bag(path) else []

@@ -4,12 +4,14 @@ directory of per-split bags (`generate --format mcap`).
 A per-split bag dataset ends with its manifest (`manifest.json`, the episodes per split),
 written after every bag is closed: a dataset whose manifest names a split without its
 complete bag is refused by every reader (`bag_splits`). Every reader refuses a requested
-split without examples, with the message dataset.txt gives (`splits.require_splits`).
+split without examples, with the message dataset.txt gives (`splits.require_splits`), and,
+once its bags are read, one whose bag lost every episode of it (`require_delivered`).
 """
 from __future__ import annotations
 
 import functools
 import json
+import logging
 import os
 from pathlib import Path
 from typing import Callable, Iterable, Iterator, Mapping
@@ -22,6 +24,7 @@ BAG_METADATA = "metadata.yaml"
 DATASET_MANIFEST = "manifest.json"
 MANIFEST_FORMAT = "gscan_ros/dataset"
 MANIFEST_VERSION = 1
+log = logging.getLogger(__name__)
 
 
 def is_bag(path: str | os.PathLike) -> bool:
@@ -106,12 +109,23 @@ def select_bags(path: str | os.PathLike, splits: Iterable[str] | None = None) ->
     return [bag for split, bag in split_bags(path).items() if wanted is None or split in wanted]
 
 
+def is_manifest(path: str | os.PathLike) -> bool:
+    """Whether the file at `path` is a per-split bag dataset's manifest (`write_manifest`)."""
+    try:
+        _manifest_record(Path(path))
+    except DatasetFormatError:
+        return False
+    return True
+
+
 def _read_manifest(root: Path) -> dict | None:
+    path = root / DATASET_MANIFEST
+    return _manifest_record(path) if path.is_file() else None
+
+
+def _manifest_record(path: Path) -> dict:
     from gscan_ros.user_files import read_json
 
-    path = root / DATASET_MANIFEST
-    if not path.is_file():
-        return None
     record = read_json(path, str(path), DatasetFormatError)
     counts = record.get("splits") if isinstance(record, dict) else None
     valid = (isinstance(counts, dict) and record.get("format") == MANIFEST_FORMAT
@@ -141,9 +155,16 @@ def iter_episode_loaders(path: str | os.PathLike,
     if bags is not None:
         from gscan_ros.data.bag import iter_bag_episodes
 
+        readers, delivered = [], set()
         for bag in bags:
-            for episode in iter_bag_episodes(bag, wanted):
+            readers.append(iter_bag_episodes(bag, wanted, log_losses=False))  # reported below, once
+            for episode in readers[-1]:
+                delivered.add(episode.split)
                 yield functools.partial(_itself, episode)
+        require_delivered(path, wanted, delivered, readers)
+        for reader in readers:
+            if not reader.report.complete:
+                log.warning(reader.report.summary())
         return
     from gscan_ros.data.dataset import decode_example, iter_raw_examples
 
@@ -154,6 +175,23 @@ def iter_episode_loaders(path: str | os.PathLike,
 
     for split, index, raw in iter_raw_examples(path, wanted):
         yield functools.partial(load, split, index, raw)
+
+
+def require_delivered(path: str | os.PathLike, wanted: list[str] | None, delivered: Iterable[str],
+                      readers: list) -> None:
+    """Refuse, once `readers` (bag readers of the data at `path`) are read to their end, a
+    split asked for, or when none was one a damaged bag counts, that gave no episode: a bag
+    that lost all of a split reads as empty while its metadata and the manifest still count
+    it, and the split would drop out of a result without a word."""
+    damaged = [reader for reader in readers if not reader.report.complete]
+    expected = wanted if wanted is not None else [
+        split for reader in damaged for split, count in reader.info.splits.items() if count]
+    delivered = set(delivered)
+    missing = [split for split in dict.fromkeys(expected) if split not in delivered]
+    if not missing:
+        return
+    why = "; ".join(reader.report.summary() for reader in damaged) or "its bags hold none that ended complete"
+    raise DatasetFormatError(f"no episodes of split(s) {', '.join(missing)} could be read from {path} ({why})")
 
 
 def _require_dataset_txt(path: str | os.PathLike) -> None:

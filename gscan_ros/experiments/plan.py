@@ -16,6 +16,7 @@ from typing import Sequence
 from gscan_ros.data.splits import SPLIT_KINDS, TEST_SPLITS
 from gscan_ros.errors import GscanError, quoted, shortened
 from gscan_ros.experiments.paper_figures import COLUMN_TITLES
+from gscan_ros.outputs import file_in_the_way
 from gscan_ros.user_files import parse_yaml, read_yaml
 
 # Keys the runner sets itself, never the plan's `defaults:` / `set:`.
@@ -211,6 +212,10 @@ def load_plan(path: str | Path, results: str | Path | None = None, data_root: st
         runs = [replace(r, index=i) for i, r in enumerate(taken + [r for r in runs if r.name not in names])]
     results = results or _text(doc.get("results", "results"), where, "results")
     data_root = data_root or _text(doc.get("data_root", "data_gen/experiments"), where, "data_root")
+    for key, folder in (("results", results), ("data_root", data_root)):
+        blocking = file_in_the_way(folder)
+        if blocking is not None:
+            raise PlanError(f"{where}: {key} must be a folder, but {quoted(str(blocking))} is a file")
     return Plan(path=path, results=Path(results), data_root=Path(data_root), eval_max_examples=max_examples,
                 eval_batch_size=batch_size, datasets=datasets, runs=runs)
 

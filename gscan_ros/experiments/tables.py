@@ -21,7 +21,7 @@ import statistics
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from gscan_ros.errors import GscanError
+from gscan_ros.errors import GscanError, quoted, shortened
 from gscan_ros.experiments.paper_figures import (
     COLUMN_TITLES,
     K_SHOT_LABELS,
@@ -121,36 +121,76 @@ def _read_run(path: Path) -> RunResult:
     missing = [k for k in _RESULT_KEYS if k not in doc] if isinstance(doc, dict) else list(_RESULT_KEYS)
     if missing:
         raise ReportError(f"{path} is not a run's results.json (no {missing[0]!r}; made by `gscan-ros experiment`?)")
+    metrics = _metrics(path.parent / "metrics.jsonl")
     try:
-        return _run_result(path, doc)
-    except (AttributeError, KeyError, TypeError, ValueError) as exc:  # a value of the wrong type or shape
+        return _run_result(path, doc, metrics)
+    except (AttributeError, KeyError, OverflowError, TypeError, ValueError) as exc:  # a value of the wrong shape
         raise ReportError(f"{path}: malformed results.json ({type(exc).__name__}: {exc})") from None
 
 
-def _run_result(path: Path, doc: dict) -> RunResult:
-    data = doc["data"]
+_KINDS = {
+    "a string": lambda v: isinstance(v, str),
+    "an integer": lambda v: isinstance(v, int) and not isinstance(v, bool),
+    "a finite number": lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v),
+    "a mapping": lambda v: isinstance(v, dict),
+}
+
+
+def _typed(value, kind: str, field: str, source: Path, *, optional: bool = False):
+    """`value` if it is of `kind` (a key of `_KINDS`; None too where `optional`), else a
+    ReportError naming the file and the field: a value of the wrong type would otherwise
+    fail later, far from its file, or be printed in a table."""
+    if (optional and value is None) or _KINDS[kind](value):
+        return value
+    raise ReportError(f"{source}: {field} must be {kind}{' or null' if optional else ''}, got {quoted(value)}")
+
+
+def _run_result(path: Path, doc: dict, metrics: dict) -> RunResult:
+    def get(mapping: dict, key: str, kind: str, field: str = "", optional: bool = False):
+        return _typed(mapping.get(key), kind, field or key, path, optional=optional)
+
+    data = get(doc, "data", "a mapping")
+    splits = get(doc, "splits", "a mapping")
+    for key, split in splits.items():
+        _check_split(split, f"splits.{shortened(str(key))}", path)
     if data.get("split_kind") == "length":
-        cut = doc.get("max_train_target_length") or data.get("cut_off_target_length") or 15
-        lengths = _length_counts(doc["splits"])
-        table, variant, rows = 2, f"<={cut}", _length_rows(lengths, doc["splits"])
+        cut = (get(doc, "max_train_target_length", "an integer", optional=True)
+               or get(data, "cut_off_target_length", "an integer", "data.cut_off_target_length", optional=True) or 15)
+        lengths = _length_counts(splits)
+        table, variant, rows = 2, f"<={cut}", _length_rows(lengths, splits)
     else:
         lengths = {}
-        k_shot = int(data.get("k_shot", 1))
+        k_shot = _typed(data.get("k_shot", 1), "an integer", "data.k_shot", path)
         g_row = f"G k={K_SHOT_LABELS[k_shot]}" if k_shot in K_SHOT_LABELS else f"G k_shot={k_shot}"
         table, variant = 1, "" if k_shot == 1 else g_row
         rows = {}
-        for split in doc["splits"].values():
+        for split in splits.values():
             letter = split["letter"]
             if letter == "G" or k_shot == 1:
                 rows[g_row if letter == "G" else letter] = float(split["exact_match"])
-    group = Group(table, doc["column"], variant, doc.get("paper_column"), doc["title"])
-    failures = {split["letter"] or key: (int(split["examples"]), split["failures"])
-                for key, split in doc["splits"].items() if "failures" in split}
-    return RunResult(name=doc["run"], group=group, seed=int(doc["seed"]), updates=int(doc["updates"]),
-                     max_updates=int(doc["max_updates"]), best_dev=doc.get("best_dev_exact_match"),
+    group = Group(table, get(doc, "column", "a string"), variant,
+                  get(doc, "paper_column", "a string", optional=True), get(doc, "title", "a string"))
+    failures = {split["letter"] or key: (split["examples"], split["failures"])
+                for key, split in splits.items() if "failures" in split}
+    evaluation = get(doc, "evaluation", "a mapping", optional=True) or {}
+    return RunResult(name=get(doc, "run", "a string"), group=group, seed=get(doc, "seed", "an integer"),
+                     updates=get(doc, "updates", "an integer"), max_updates=get(doc, "max_updates", "an integer"),
+                     best_dev=get(doc, "best_dev_exact_match", "a finite number", optional=True),
                      batch_size=_batch_size(path.parent / "config.yaml"), rows=rows, lengths=lengths,
-                     failures=failures, eval_max_examples=int((doc.get("evaluation") or {}).get("max_examples") or 0),
-                     **_metrics(path.parent / "metrics.jsonl"))
+                     failures=failures, **metrics,
+                     eval_max_examples=get(evaluation, "max_examples", "an integer", "evaluation.max_examples",
+                                           optional=True) or 0)
+
+
+def _check_split(split, field: str, path: Path) -> None:
+    """The values of a split's results that the tables read, each of its type (`_typed`)."""
+    _typed(split, "a mapping", field, path)
+    _typed(split.get("letter"), "a string", f"{field}.letter", path)
+    _typed(split.get("exact_match"), "a finite number", f"{field}.exact_match", path)
+    _typed(split.get("examples"), "an integer", f"{field}.examples", path)
+    failures = _typed(split.get("failures"), "a mapping", f"{field}.failures", path, optional=True) or {}
+    for kind, count in failures.items():
+        _typed(count, "an integer", f"{field}.failures.{shortened(str(kind))}", path)
 
 
 def _batch_size(config: Path) -> int | None:
@@ -198,11 +238,13 @@ def _metrics(metrics: Path) -> dict:
     for rec in read_events(metrics):
         event = rec.get("event")
         if event == "validation":
-            points[int(rec["step"])] = float(rec["dev_exact_match"])
+            step = _typed(rec.get("step"), "an integer", "step of a validation record", metrics)
+            points[step] = float(_typed(rec.get("dev_exact_match"), "a finite number",
+                                        "dev_exact_match of a validation record", metrics))
         elif event == "screen":
-            screen[int(rec["seed"])] = bool(rec["passed"])
+            screen[_typed(rec.get("seed"), "an integer", "seed of a screen record", metrics)] = bool(rec.get("passed"))
         elif event == "screen_end":
-            kept = int(rec["seed"])
+            kept = _typed(rec.get("seed"), "an integer", "seed of a screen_end record", metrics)
     return {"curve": sorted(points.items()), "screen": list(screen.items()), "kept_seed": kept}
 
 

@@ -140,9 +140,10 @@ def read_checkpoint(path: str | os.PathLike) -> dict:
 
 
 def _check_archive(path: Path) -> None:
-    """Refuse, before torch unpacks anything, a file that is not a zip archive or whose
-    sizes pass the bounds: torch allocates every tensor at the size the zip declares, so a
-    5 MB file that declares 4 GB of tensors would otherwise cost 4 GB before any check."""
+    """Refuse, before torch unpacks anything, a file that is not a zip archive, whose
+    sizes pass the bounds (torch allocates every tensor at the size the zip declares, so a
+    5 MB file that declares 4 GB of tensors would otherwise cost 4 GB before any check), or
+    whose bytes no longer match their CRCs."""
     where = f"checkpoint {str(path)!r}"
     try:
         size = path.stat().st_size
@@ -159,11 +160,24 @@ def _check_archive(path: Path) -> None:
             raise CheckpointError(f"{where} holds {entries:,} files, more than the {MAX_CHECKPOINT_ENTRIES:,} allowed")
         with zipfile.ZipFile(path) as archive:
             declared = sum(info.file_size for info in archive.infolist())
+            if declared > MAX_CHECKPOINT_BYTES:
+                raise CheckpointError(f"{where} declares {declared:,} bytes of content, more than the "
+                                      f"{MAX_CHECKPOINT_BYTES:,} allowed")
+            damaged = _damaged_entry(archive)
     except (OSError, zipfile.BadZipFile) as exc:
         raise CheckpointError(f"cannot read {where}: {exc}") from None
-    if declared > MAX_CHECKPOINT_BYTES:
-        raise CheckpointError(f"{where} declares {declared:,} bytes of content, more than the "
-                              f"{MAX_CHECKPOINT_BYTES:,} allowed")
+    if damaged:
+        raise CheckpointError(f"{where} is corrupt: {damaged}")
+
+
+def _damaged_entry(archive: zipfile.ZipFile) -> str | None:
+    """What of `archive` fails its CRC or cannot be unpacked, or None. torch.load checks no
+    CRC, so flipped bytes inside a tensor would load as other weights without a word."""
+    try:
+        name = archive.testzip()
+    except Exception as exc:  # zipfile raises many types for a damaged entry (zlib.error, EOFError, ...)
+        return f"an entry cannot be unpacked ({type(exc).__name__}: {exc})"
+    return None if name is None else f"the CRC of {name} does not match its bytes"
 
 
 def validate_checkpoint(ckpt: dict, path: str | os.PathLike) -> None:

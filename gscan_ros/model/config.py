@@ -40,18 +40,35 @@ class SerializableConfig:
         return cls(**d)
 
 
-def check_settings(cfg, sizes: tuple[str, ...], rates: tuple[str, ...]) -> None:
-    """ValueError unless the settings `sizes` of `cfg` are positive integers, its `rates` numbers
-    in [0, 1) and its `cnn_kernels` odd positive integers (stored as a tuple). Settings come
-    from YAML and checkpoints: a list, a float or a negative fails here, not in torch."""
-    for name in sizes:
+# Bounds of the sizes, far above any real config (the shipped ones: widths up to 100, 2 GRU
+# layers, 4 LCGN rounds, 3 kernels of at most 13): a size in the thousands would only fail
+# in torch's allocator, or take the machine's memory.
+MAX_WIDTH = 512
+"""Most units of a layer: channels, embedding, attention, hidden and node widths."""
+MAX_DEPTH = 8
+"""Most stacked layers (`rnn_layers`), message-passing rounds (`rounds`) and conv branches (`cnn_kernels`)."""
+MAX_KERNEL = 2 * SUPPORTED_GRID_SIZES[-1] - 1
+"""The widest conv kernel (31): a wider one sees no more of the largest grid."""
+
+
+def check_settings(cfg, sizes: tuple[str, ...], rates: tuple[str, ...], depths: tuple[str, ...] = ()) -> None:
+    """ValueError unless the settings `sizes` of `cfg` are integers in [1, MAX_WIDTH], its
+    `depths` in [1, MAX_DEPTH], its `rates` numbers in [0, 1) and its `cnn_kernels` at most
+    MAX_DEPTH odd integers in [1, MAX_KERNEL] (stored as a tuple). Settings come from YAML
+    and checkpoints: a list, a float, a negative or a huge size fails here, not in torch."""
+    for name in (*sizes, *depths):
         value = getattr(cfg, name)
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
             raise ValueError(f"{name} must be a positive integer, got {quoted(value)}")
+        bound = MAX_DEPTH if name in depths else MAX_WIDTH
+        if value > bound:
+            raise ValueError(f"{name} must be at most {bound}, got {quoted(value)}")
     kernels = cfg.cnn_kernels
-    if not (isinstance(kernels, (list, tuple)) and kernels
-            and all(isinstance(k, int) and not isinstance(k, bool) and k > 0 and k % 2 for k in kernels)):
-        raise ValueError(f"cnn_kernels must be a non-empty list of odd positive integers, got {quoted(kernels)}")
+    if not (isinstance(kernels, (list, tuple)) and 0 < len(kernels) <= MAX_DEPTH
+            and all(isinstance(k, int) and not isinstance(k, bool) and 0 < k <= MAX_KERNEL and k % 2
+                    for k in kernels)):
+        raise ValueError(f"cnn_kernels must be a list of 1 to {MAX_DEPTH} odd integers in [1, {MAX_KERNEL}], "
+                         f"got {quoted(kernels)}")
     object.__setattr__(cfg, "cnn_kernels", tuple(kernels))
     for name in rates:
         value = getattr(cfg, name)
@@ -127,8 +144,8 @@ class ModelConfig(SerializableConfig):
             raise ValueError(f"init_fan_in must be one of {INIT_FAN_INS}, got {quoted(self.init_fan_in)}")
         if self.attention_state == "add" and not self.uses_attention:
             raise ValueError("attention_state='add' needs attention maps; message='state' has none")
-        check_settings(self, ("grid_size", "in_channels", "cnn_channels", "att_dim", "rnn_layers", "rnn_dim",
-                              "num_actions"), ("cnn_dropout",))
+        check_settings(self, ("grid_size", "in_channels", "cnn_channels", "att_dim", "rnn_dim", "num_actions"),
+                       ("cnn_dropout",), ("rnn_layers",))
         if self.grid_size not in SUPPORTED_GRID_SIZES:
             raise ValueError(f"grid_size {self.grid_size} is not supported "
                              f"({SUPPORTED_GRID_SIZES[0]} to {SUPPORTED_GRID_SIZES[-1]})")
@@ -249,8 +266,8 @@ class LCGNConfig(SerializableConfig):
     """Side of the square grid the observations have (6 compositional, 12 for split I)."""
 
     def __post_init__(self) -> None:
-        check_settings(self, ("embedding_dim", "command_dim", "attribute_dim", "node_dim", "rounds", "cnn_channels",
+        check_settings(self, ("embedding_dim", "command_dim", "attribute_dim", "node_dim", "cnn_channels",
                               "hidden", "num_actions", "grid_size"),
-                       ("cnn_dropout", "embedding_dropout", "command_dropout", "read_dropout", "dropout"))
+                       ("cnn_dropout", "embedding_dropout", "command_dropout", "read_dropout", "dropout"), ("rounds",))
         if self.command_dim % 2:
             raise ValueError(f"command_dim must be even (two LSTM directions), got {self.command_dim}")

@@ -14,17 +14,22 @@ import logging
 import os
 from pathlib import Path
 
+from gscan_ros.errors import GscanError
+
 log = logging.getLogger(__name__)
 _warned: set[Path] = set()
 
 
 def read_events(path: str | os.PathLike) -> list[dict]:
-    """The records of a metrics.jsonl (none when it does not exist), torn lines skipped."""
+    """The records of a metrics.jsonl (none when it does not exist), torn lines skipped;
+    GscanError when it cannot be read."""
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8", errors="replace")
     except FileNotFoundError:
         return []
+    except OSError as exc:  # a folder in its place, no permission
+        raise GscanError(f"cannot read {path}: {exc.strerror}") from None
     events, torn = [], 0
     for line in text.splitlines():
         try:

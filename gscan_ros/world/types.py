@@ -251,7 +251,7 @@ def _check_object(obj: WorldObject, where: str, n: int) -> None:
 
 def _check_position(pos: Position, where: str, n: int) -> None:
     if not (0 <= pos.row < n and 0 <= pos.col < n):
-        raise SituationError(f"{where}: {tuple(pos)} is outside the {n}x{n} grid")
+        raise SituationError(f"{where}: {quoted(tuple(pos))} is outside the {n}x{n} grid")
 
 
 def _describe_grid_sizes() -> str:
@@ -266,7 +266,7 @@ def _validate_situation(s: Situation) -> None:
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise SituationError(f"situation.grid_size: expected a positive integer, got {quoted(n)}")
     if n not in SUPPORTED_GRID_SIZES:
-        raise SituationError(f"situation.grid_size: {n} is not supported ({_describe_grid_sizes()})")
+        raise SituationError(f"situation.grid_size: {quoted(n)} is not supported ({_describe_grid_sizes()})")
     setf(s, "agent_position", Position(*s.agent_position))
     _check_position(s.agent_position, "situation.agent_position", n)
     try:
@@ -295,7 +295,7 @@ def _validate_situation(s: Situation) -> None:
         setf(s, "distance_to_target", distance)
     elif s.distance_to_target != distance:
         raise SituationError(
-            f"situation.distance_to_target: {s.distance_to_target} disagrees with the agent-target "
+            f"situation.distance_to_target: {quoted(s.distance_to_target)} disagrees with the agent-target "
             f"Manhattan distance {distance}"
         )
     direction = direction_between(s.agent_position, target.position)
@@ -334,9 +334,16 @@ def _field(d: Any, key: str, where: str) -> Any:
     return d[key]
 
 
+# Digits of an integer string in a situation: its coordinates, sizes and distances have two
+# at most; a longer string is refused before int() (which refuses more than 4,300 digits).
+MAX_INT_DIGITS = 9
+
+
 def _int_string(value: Any, where: str) -> int:
     if not isinstance(value, str) or not value.isdigit() or not value.isascii():
         raise SituationError(f"{where}: expected an integer string, got {_describe(value)}")
+    if len(value) > MAX_INT_DIGITS:
+        raise SituationError(f"{where}: {quoted(value)} has more than {MAX_INT_DIGITS} digits; no grid is that large")
     return int(value)
 
 
@@ -357,7 +364,7 @@ def _object(d: Any, where: str) -> WorldObject:
         raise SituationError(f"{where}.object.color: unknown color {_describe(color)}; known: {', '.join(COLORS)}")
     size = _int_string(_field(spec, "size", f"{where}.object"), f"{where}.object.size")
     if size not in SIZES:
-        raise SituationError(f"{where}.object.size: expected 1-4, got {size}")
+        raise SituationError(f"{where}.object.size: expected 1-4, got {quoted(size)}")
     obj = WorldObject(shape, color, size, _position(_field(d, "position", where), f"{where}.position"))
     check_object_vector(obj, _field(d, "vector", where), f"{where}.vector")
     return obj

@@ -1,7 +1,7 @@
 """Every gscan-ros subcommand refuses a bad number or path the same way: exit status 1, one
-line on stderr naming the argument, no traceback, nothing written (issue: tracebacks on
-bad arguments). The CLI runs in-process from a scratch working directory, so a default
-output folder (runs/, out/) written by mistake would show up in the snapshot."""
+line on stderr naming the argument, no traceback, nothing written. The CLI runs in-process
+from a scratch working directory, so a default output folder (runs/, out/) written by
+mistake would show up in the snapshot."""
 import subprocess
 import sys
 from pathlib import Path

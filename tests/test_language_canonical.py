@@ -13,7 +13,7 @@ from gscan_ros.language.paraphrase import paraphrase
 
 LEXICON = Lexicon.from_wordnet()
 
-# typed -> canonical gSCAN command; the first three are the (the first is the paper's Fig. 1).
+# typed -> canonical gSCAN command; the first three are docs/language.md's examples (the first is the paper's Fig. 1).
 PARAPHRASES = {
     "Push the small blue cylinder": "push a blue small cylinder",
     "walk to a large circle": "walk to a big circle",

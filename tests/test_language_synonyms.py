@@ -33,7 +33,7 @@ def test_a_sense_is_chosen_for_every_content_word_wordnet_has():
         assert word in reader.synset(sense).lemma_names(), (word, sense)
 
 
-def test_the_issues_examples_and_the_left_out_kinds():
+def test_synonyms_map_to_gscan_words_and_the_left_out_kinds():
     assert TABLE.lookup("large").target == "big" and TABLE.lookup("little").target == "small"
     assert TABLE.lookup("huge").synset == "huge.s.01" and TABLE.lookup("huge").sense == "large.a.01"
     assert TABLE.lookup("carefully").target == "cautiously"

@@ -13,8 +13,8 @@ from gscan_ros.model.policy import Policy
 from gscan_ros.training.evaluate import evaluate_episodes
 from gscan_ros.world import demonstrate
 
-# The issue's commands (the first is the paper's Fig. 1) -> the gSCAN command each means.
-ISSUE = {
+# Typed commands (the first is the paper's Fig. 1) -> the gSCAN command each means.
+TYPED = {
     "Push the small blue cylinder": "push a blue small cylinder",
     "walk to a large circle": "walk to a big circle",
     "walk to the big red circle": "walk to a red big circle",
@@ -32,9 +32,9 @@ def episode_for(command: str, seed: int) -> Episode:
 
 
 def test_paraphrases_give_the_canonical_commands_actions():
-    canonical = [episode_for(command, seed) for seed, command in enumerate(ISSUE.values())]
+    canonical = [episode_for(command, seed) for seed, command in enumerate(TYPED.values())]
     canonical += [sample_episode(seed) for seed in range(9)]
-    typed = list(ISSUE) + [paraphrase(ep.command, random.Random(i)) for i, ep in enumerate(canonical[3:])]
+    typed = list(TYPED) + [paraphrase(ep.command, random.Random(i)) for i, ep in enumerate(canonical[3:])]
     assert all(t != ep.command for t, ep in zip(typed, canonical))
     policy = Policy.from_checkpoint()
     expected = evaluate_episodes(policy, canonical).predictions

@@ -1,4 +1,4 @@
-"""No writer deletes or replaces a user's files without an explicit flag (issue: data loss)."""
+"""No writer deletes or replaces a user's files without an explicit flag."""
 import pytest
 
 from gscan_ros.cli import main

@@ -263,6 +263,17 @@ def test_metadata_problems_name_the_file(small_chunk_bag, tmp_path):
     (bag / "metadata.yaml").write_text(text.replace("storage_identifier: mcap", "storage_identifier: sqlite3"))
     with pytest.raises(DatasetFormatError, match="storage 'sqlite3' is not supported"):
         read_bag_info(bag)
+    info = yaml.safe_load(text)
+    info["rosbag2_bagfile_information"]["relative_file_paths"] = "bag_0.mcap"  # a string, not a list
+    (bag / "metadata.yaml").write_text(yaml.safe_dump(info))
+    with pytest.raises(DatasetFormatError, match="relative_file_paths must be a list of file names, got 'bag_0.mcap'"):
+        read_bag_info(bag)
+    shutil.copy(small_chunk_bag / "bag_0.mcap", bag / "bag_0.mcap")
+    for version, problem in (("'x'", "'x' is not a version number"), ("'9'", "'9' is newer than supported")):
+        (bag / "metadata.yaml").write_text(text.replace("gscan_ros.format_version: '2'",
+                                                        f"gscan_ros.format_version: {version}"))
+        with pytest.raises(DatasetFormatError, match=problem):
+            read_bag_info(bag)
 
 
 @pytest.fixture(scope="module")

@@ -50,6 +50,8 @@ BAD_ARGUMENTS = [
     ("bag repair {missing} --out {tmp}/r", "BAG"),
     ("bag repair {data} --out {file}", "--out"),
     ("verify {data} --limit 0", "--limit"),
+    ("verify {data} --splits=", "--splits"),
+    ("verify {data} --splits=train,,dev", "--splits"),
     ("verify {data} --limit x", "--limit"),
     ("verify {data} --show -1", "--show"),
     # render

@@ -496,6 +496,8 @@ BAD_PLANS = [
     ({"runs": [{"name": "x", "config": "{config}", "data": "tiny", "seeds": [0], "splits": ["target_lengths"]}]},
      "runs[0].splits"),
     ({"datasets": {"tiny": {"k_shot": -1}}}, "datasets.tiny.k_shot"),
+    ({"datasets": {"tiny": {"grid_size": 100}}}, "datasets.tiny: grid size 100 is not supported"),
+    ({"datasets": {"tiny": {"percentage_dev": 1.5}}}, "datasets.tiny: percentage_train must be in (0, 1]"),
     ({"datasets": {"tiny": {"examples": "many"}}}, "datasets.tiny.examples"),
     ({"datasets": {"tiny": {"augment": "mixup"}}}, "datasets.tiny.augment"),
     ({"datasets": {"tiny": {"augment_seed": 1}}}, "datasets.tiny.augment_seed needs"),

@@ -86,6 +86,14 @@ def _within_cpus(count: int, what: str) -> int:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
+def name_list(text: str) -> list[str]:
+    """Comma-separated names (`--splits train,dev`): none of them empty."""
+    names = [name.strip() for name in text.split(",")]
+    if not all(names):
+        raise argparse.ArgumentTypeError(f"{text!r} holds an empty name; expected names separated by commas")
+    return names
+
+
 # -------------------------------------------------------------------------------- paths
 def existing_file(text: str) -> Path:
     return _existing(text, "file")

@@ -16,7 +16,7 @@ from __future__ import annotations
 import argparse
 
 from gscan_ros import episode_status as es
-from gscan_ros.cli.args import existing_path, nonnegative_int, positive_int
+from gscan_ros.cli.args import existing_path, name_list, nonnegative_int, positive_int
 from gscan_ros.data.bag_format import LIVE_SPLIT
 
 
@@ -30,7 +30,7 @@ def register(subparsers) -> None:
     )
     p.add_argument("dataset", type=existing_path, metavar="DATASET",
                    help="dataset.txt, a directory holding it, or a bag directory")
-    p.add_argument("--splits", help="comma-separated splits to check (default: all)")
+    p.add_argument("--splits", type=name_list, metavar="S1,S2", help="comma-separated splits to check (default: all)")
     p.add_argument("--limit", type=positive_int, metavar="N", help="check at most N examples")
     p.add_argument("--show", type=nonnegative_int, default=5, metavar="K",
                    help="mismatches to print in full (default: 5)")
@@ -81,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
 
     from tqdm import tqdm
 
-    splits = args.splits.split(",") if args.splits else None
+    splits = args.splits
     readers = _bag_readers(args.dataset, splits, args.include_incomplete)
     if readers is None:
         from gscan_ros.data.io import iter_episodes

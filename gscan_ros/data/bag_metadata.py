@@ -201,7 +201,10 @@ def read_bag_info(bag_dir: str | os.PathLike) -> BagInfo:
             raise DatasetFormatError(f"{path}: storage {quoted(storage)} is not supported (only {STORAGE_ID!r})")
         if info.get("compression_mode") not in (None, "", "none", "NONE"):
             raise DatasetFormatError(f"{path}: rosbag2 file compression is not supported (MCAP chunks are)")
-        mcap_paths = tuple(bag_dir / Path(p).name for p in info["relative_file_paths"])
+        files = info["relative_file_paths"]
+        if not isinstance(files, list) or not all(isinstance(p, str) for p in files):
+            raise DatasetFormatError(f"{path}: relative_file_paths must be a list of file names, got {quoted(files)}")
+        mcap_paths = tuple(bag_dir / Path(p).name for p in files)
         topics = {
             t["topic_metadata"]["name"]: TopicInfo(
                 t["topic_metadata"]["name"], t["topic_metadata"]["type"], int(t["message_count"])
@@ -225,8 +228,9 @@ def read_bag_info(bag_dir: str | os.PathLike) -> BagInfo:
     custom, warnings = _custom_data(info.get("custom_data"), path)
     fmt = custom.get("gscan_ros.format_version", str(EPISODE_FORMAT_VERSION))
     if fmt not in {str(v) for v in range(EPISODE_FORMAT_VERSION + 1)}:
+        what = "is newer than supported" if fmt.isdigit() and fmt.isascii() else "is not a version number"
         raise DatasetFormatError(
-            f"{path}: episode format version {shortened(fmt)} is newer than supported ({EPISODE_FORMAT_VERSION})"
+            f"{path}: episode format version {quoted(fmt)} {what} (the newest is {EPISODE_FORMAT_VERSION})"
         )
     if missing:
         warnings.append(f"{path} lists {len(missing)} storage file(s) that are missing ({_names(missing)}): "

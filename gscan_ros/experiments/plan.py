@@ -273,7 +273,19 @@ def _dataset(name, spec, where: str) -> DataRecipe:
         if values.get(int_key, 0) < 0:
             raise PlanError(f"{where}: {key}.{int_key} must be >= 0, got {quoted(values[int_key])}")
     _augment_keys(values, where, key)
-    return DataRecipe(name=str(name), examples=None if examples == "full" else examples, **values)
+    recipe = DataRecipe(name=str(name), examples=None if examples == "full" else examples, **values)
+    if recipe.path is None:  # what `generate` would refuse, refused before any run starts
+        from gscan_ros.data.generate import GenerationConfig
+
+        optional = {k: getattr(recipe, k) for k in ("num_resampling", "percentage_train", "percentage_dev",
+                                                     "cut_off_target_length", "grid_size")
+                    if getattr(recipe, k) is not None}
+        try:
+            GenerationConfig(seed=recipe.seed, split_kind=recipe.split_kind, max_examples=recipe.examples,
+                             k_shot=recipe.k_shot, **optional).resolved()
+        except GscanError as error:
+            raise PlanError(f"{where}: {key}: {error}") from None
+    return recipe
 
 
 def _augment_keys(values: dict, where: str, key: str) -> None:

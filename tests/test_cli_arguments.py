@@ -135,6 +135,7 @@ BAD_ARGUMENTS = [
     ("replay {data} --checkpoint {missing}", "--checkpoint"),
     # demo
     ("demo --episodes 0", "--episodes"),
+    ("demo --command=", "--command"),
     ("demo --timeout 0", "--timeout"),
     ("demo --timeout nan", "--timeout"),
     ("demo --max-steps 0", "--max-steps"),

@@ -86,6 +86,13 @@ def _within_cpus(count: int, what: str) -> int:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
+def nonblank(text: str) -> str:
+    """Text with something in it (a command to send): blank text would silently mean "the default"."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("is empty")
+    return text
+
+
 def name_list(text: str) -> list[str]:
     """Comma-separated names (`--splits train,dev`): none of them empty."""
     names = [name.strip() for name in text.split(",")]

@@ -15,7 +15,7 @@ import os
 import time
 from pathlib import Path
 
-from gscan_ros.cli.args import float_in, positive_int
+from gscan_ros.cli.args import float_in, nonblank, positive_int
 from gscan_ros.cli.bringup import add_stack_arguments, stack_options
 from gscan_ros.errors import GscanError
 
@@ -27,7 +27,7 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("demo", help="run the ROS stack on one command and show the episode",
                               description=__doc__.splitlines()[0])
     add_stack_arguments(p)
-    p.add_argument("--command", dest="command_text", default=None,
+    p.add_argument("--command", dest="command_text", type=nonblank, default=None,
                    help="command to send (default: the situation's generated one)")
     p.add_argument("--out", type=Path, default=None,
                    help=f"output directory, new or empty (default: a new {DEFAULT_OUT_ROOT}/<date>_<time>)")

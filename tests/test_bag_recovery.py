@@ -268,6 +268,11 @@ def test_metadata_problems_name_the_file(small_chunk_bag, tmp_path):
     (bag / "metadata.yaml").write_text(yaml.safe_dump(info))
     with pytest.raises(DatasetFormatError, match="relative_file_paths must be a list of file names, got 'bag_0.mcap'"):
         read_bag_info(bag)
+    info = yaml.safe_load(text)
+    info["rosbag2_bagfile_information"]["topics_with_message_count"][0]["topic_metadata"]["type"] = 7
+    (bag / "metadata.yaml").write_text(yaml.safe_dump(info))
+    with pytest.raises(DatasetFormatError, match="a topic's name and type must be text, got '/.*' of type 7"):
+        read_bag_info(bag)
     shutil.copy(small_chunk_bag / "bag_0.mcap", bag / "bag_0.mcap")
     for version, problem in (("'x'", "'x' is not a version number"), ("'9'", "'9' is newer than supported")):
         (bag / "metadata.yaml").write_text(text.replace("gscan_ros.format_version: '2'",

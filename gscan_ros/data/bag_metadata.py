@@ -205,12 +205,13 @@ def read_bag_info(bag_dir: str | os.PathLike) -> BagInfo:
         if not isinstance(files, list) or not all(isinstance(p, str) for p in files):
             raise DatasetFormatError(f"{path}: relative_file_paths must be a list of file names, got {quoted(files)}")
         mcap_paths = tuple(bag_dir / Path(p).name for p in files)
-        topics = {
-            t["topic_metadata"]["name"]: TopicInfo(
-                t["topic_metadata"]["name"], t["topic_metadata"]["type"], int(t["message_count"])
-            )
-            for t in info["topics_with_message_count"] or []
-        }
+        topics = {}
+        for t in info["topics_with_message_count"] or []:
+            name, msg_type = t["topic_metadata"]["name"], t["topic_metadata"]["type"]
+            if not (isinstance(name, str) and isinstance(msg_type, str)):  # a type decides how a topic is read
+                raise DatasetFormatError(f"{path}: a topic's name and type must be text, got {quoted(name)} "
+                                         f"of type {quoted(msg_type)}")
+            topics[name] = TopicInfo(name, msg_type, int(t["message_count"]))
         version = int(info["version"])
         message_count = int(info["message_count"])
         start_ns = int(info["starting_time"]["nanoseconds_since_epoch"])

@@ -776,6 +776,8 @@ def test_report_is_byte_identical_and_refuses_to_overwrite(results, tmp_path, ca
     ("seed", 1e400, "seed must be an integer, got inf"),
     ("data", {"split_kind": "length", "cut_off_target_length": [14]}, "data.cut_off_target_length"),
     ("evaluation", {"max_examples": 1e400}, "evaluation.max_examples must be an integer"),
+    ("splits", {"test": split("A", 50.0) | {"by_target_length": {"9": {"exact_match": 50.0, "examples": "4"}}}},
+     "splits.test.by_target_length.9.examples must be an integer, got '4'"),
 ])
 def test_report_names_a_results_json_of_the_wrong_shape(results, tmp_path, capsys, field, value, named):
     path = results[0] / "state_s0" / "results.json"

@@ -42,7 +42,6 @@ from gscan_ros.user_files import read_json, read_yaml
 RISING_POINTS = 1.0  # dev exact match gained over the last 20 % of updates that counts as "still rising"
 MUCH_POINTS = 10.0  # "≫": ahead by more than this many points
 LENGTH_ROWS = TABLE2_ROWS + ("I",)
-_RESULT_KEYS = ("run", "column", "title", "seed", "updates", "max_updates", "data", "splits")
 
 
 class ReportError(GscanError):
@@ -121,10 +120,11 @@ def _read_run(path: Path) -> RunResult:
     missing = [k for k in _RESULT_KEYS if k not in doc] if isinstance(doc, dict) else list(_RESULT_KEYS)
     if missing:
         raise ReportError(f"{path} is not a run's results.json (no {missing[0]!r}; made by `gscan-ros experiment`?)")
+    _check(doc, _RESULTS, "", path)
     metrics = _metrics(path.parent / "metrics.jsonl")
     try:
         return _run_result(path, doc, metrics)
-    except (AttributeError, KeyError, OverflowError, TypeError, ValueError) as exc:  # a value of the wrong shape
+    except (KeyError, OverflowError, ValueError) as exc:  # e.g. a target length that is not a number
         raise ReportError(f"{path}: malformed results.json ({type(exc).__name__}: {exc})") from None
 
 
@@ -135,32 +135,55 @@ _KINDS = {
     "a mapping": lambda v: isinstance(v, dict),
 }
 
+# What the tables read from a results.json, each value's kind (a `_KINDS` key) or, for a
+# mapping, its own schema; "*" stands for every key of a mapping, and a key ending in "?"
+# may be missing or null. Other keys are not read, so they are not checked.
+_SPLIT = {
+    "letter": "a string", "exact_match": "a finite number", "examples": "an integer",
+    "failures?": {"*": "an integer"},
+    "by_target_length?": {"*": {"exact_match": "a finite number", "examples": "an integer"}},
+}
+_RESULTS = {
+    "run": "a string", "column": "a string", "title": "a string", "paper_column?": "a string",
+    "seed": "an integer", "updates": "an integer", "max_updates": "an integer",
+    "best_dev_exact_match?": "a finite number", "max_train_target_length?": "an integer",
+    "data": {"split_kind?": "a string", "k_shot?": "an integer", "cut_off_target_length?": "an integer"},
+    "splits": {"*": _SPLIT},
+    "evaluation?": {"max_examples?": "an integer"},
+}
+_RESULT_KEYS = tuple(key for key in _RESULTS if not key.endswith("?"))
 
-def _typed(value, kind: str, field: str, source: Path, *, optional: bool = False):
-    """`value` if it is of `kind` (a key of `_KINDS`; None too where `optional`), else a
-    ReportError naming the file and the field: a value of the wrong type would otherwise
-    fail later, far from its file, or be printed in a table."""
-    if (optional and value is None) or _KINDS[kind](value):
-        return value
-    raise ReportError(f"{source}: {field} must be {kind}{' or null' if optional else ''}, got {quoted(value)}")
+
+def _check(value, schema: str | dict, field: str, source: Path, *, optional: bool = False) -> None:
+    """Raise a ReportError naming the file and the field where `value` does not fit
+    `schema`: a value of the wrong type would otherwise fail later, far from its file, or
+    be printed in a table."""
+    kind = schema if isinstance(schema, str) else "a mapping"
+    if optional and value is None:
+        return
+    if not _KINDS[kind](value):
+        raise ReportError(f"{source}: {field} must be {kind}{' or null' if optional else ''}, got {quoted(value)}")
+    if isinstance(schema, str):
+        return
+    for key, inner in schema.items():
+        if key == "*":
+            for name, item in value.items():
+                _check(item, inner, f"{field}.{shortened(str(name))}".lstrip("."), source)
+        else:
+            name = key.removesuffix("?")
+            _check(value.get(name), inner, f"{field}.{name}".lstrip("."), source, optional=key.endswith("?"))
 
 
 def _run_result(path: Path, doc: dict, metrics: dict) -> RunResult:
-    def get(mapping: dict, key: str, kind: str, field: str = "", optional: bool = False):
-        return _typed(mapping.get(key), kind, field or key, path, optional=optional)
-
-    data = get(doc, "data", "a mapping")
-    splits = get(doc, "splits", "a mapping")
-    for key, split in splits.items():
-        _check_split(split, f"splits.{shortened(str(key))}", path)
+    """The run in a results.json that `_check` accepted."""
+    data, splits = doc["data"], doc["splits"]
     if data.get("split_kind") == "length":
-        cut = (get(doc, "max_train_target_length", "an integer", optional=True)
-               or get(data, "cut_off_target_length", "an integer", "data.cut_off_target_length", optional=True) or 15)
+        cut = doc.get("max_train_target_length") or data.get("cut_off_target_length") or 15
         lengths = _length_counts(splits)
         table, variant, rows = 2, f"<={cut}", _length_rows(lengths, splits)
     else:
         lengths = {}
-        k_shot = _typed(data.get("k_shot", 1), "an integer", "data.k_shot", path)
+        k_shot = 1 if data.get("k_shot") is None else data["k_shot"]
         g_row = f"G k={K_SHOT_LABELS[k_shot]}" if k_shot in K_SHOT_LABELS else f"G k_shot={k_shot}"
         table, variant = 1, "" if k_shot == 1 else g_row
         rows = {}
@@ -168,29 +191,14 @@ def _run_result(path: Path, doc: dict, metrics: dict) -> RunResult:
             letter = split["letter"]
             if letter == "G" or k_shot == 1:
                 rows[g_row if letter == "G" else letter] = float(split["exact_match"])
-    group = Group(table, get(doc, "column", "a string"), variant,
-                  get(doc, "paper_column", "a string", optional=True), get(doc, "title", "a string"))
+    group = Group(table, doc["column"], variant, doc.get("paper_column"), doc["title"])
     failures = {split["letter"] or key: (split["examples"], split["failures"])
-                for key, split in splits.items() if "failures" in split}
-    evaluation = get(doc, "evaluation", "a mapping", optional=True) or {}
-    return RunResult(name=get(doc, "run", "a string"), group=group, seed=get(doc, "seed", "an integer"),
-                     updates=get(doc, "updates", "an integer"), max_updates=get(doc, "max_updates", "an integer"),
-                     best_dev=get(doc, "best_dev_exact_match", "a finite number", optional=True),
+                for key, split in splits.items() if split.get("failures") is not None}
+    return RunResult(name=doc["run"], group=group, seed=doc["seed"], updates=doc["updates"],
+                     max_updates=doc["max_updates"], best_dev=doc.get("best_dev_exact_match"),
                      batch_size=_batch_size(path.parent / "config.yaml"), rows=rows, lengths=lengths,
                      failures=failures, **metrics,
-                     eval_max_examples=get(evaluation, "max_examples", "an integer", "evaluation.max_examples",
-                                           optional=True) or 0)
-
-
-def _check_split(split, field: str, path: Path) -> None:
-    """The values of a split's results that the tables read, each of its type (`_typed`)."""
-    _typed(split, "a mapping", field, path)
-    _typed(split.get("letter"), "a string", f"{field}.letter", path)
-    _typed(split.get("exact_match"), "a finite number", f"{field}.exact_match", path)
-    _typed(split.get("examples"), "an integer", f"{field}.examples", path)
-    failures = _typed(split.get("failures"), "a mapping", f"{field}.failures", path, optional=True) or {}
-    for kind, count in failures.items():
-        _typed(count, "an integer", f"{field}.failures.{shortened(str(kind))}", path)
+                     eval_max_examples=(doc.get("evaluation") or {}).get("max_examples") or 0)
 
 
 def _batch_size(config: Path) -> int | None:
@@ -222,7 +230,7 @@ def _length_counts(splits: dict) -> dict[int, tuple[float, int]]:
     """Correct episodes and episodes per target length, pooled over the splits."""
     counts: dict[int, list[float]] = {}
     for split in splits.values():
-        for length, cell in split.get("by_target_length", {}).items():
+        for length, cell in (split.get("by_target_length") or {}).items():
             pooled = counts.setdefault(int(length), [0.0, 0])
             pooled[0] += cell["exact_match"] * cell["examples"] / 100
             pooled[1] += cell["examples"]
@@ -238,13 +246,15 @@ def _metrics(metrics: Path) -> dict:
     for rec in read_events(metrics):
         event = rec.get("event")
         if event == "validation":
-            step = _typed(rec.get("step"), "an integer", "step of a validation record", metrics)
-            points[step] = float(_typed(rec.get("dev_exact_match"), "a finite number",
-                                        "dev_exact_match of a validation record", metrics))
+            _check(rec.get("step"), "an integer", "step of a validation record", metrics)
+            _check(rec.get("dev_exact_match"), "a finite number", "dev_exact_match of a validation record", metrics)
+            points[rec["step"]] = float(rec["dev_exact_match"])
         elif event == "screen":
-            screen[_typed(rec.get("seed"), "an integer", "seed of a screen record", metrics)] = bool(rec.get("passed"))
+            _check(rec.get("seed"), "an integer", "seed of a screen record", metrics)
+            screen[rec["seed"]] = bool(rec.get("passed"))
         elif event == "screen_end":
-            kept = _typed(rec.get("seed"), "an integer", "seed of a screen_end record", metrics)
+            _check(rec.get("seed"), "an integer", "seed of a screen_end record", metrics)
+            kept = rec["seed"]
     return {"curve": sorted(points.items()), "screen": list(screen.items()), "kept_seed": kept}
 
 

@@ -114,7 +114,9 @@ def test_rerun_skips_finished_runs_and_resumes_a_killed_one(trained, capsys):
     events = [json.loads(line) for line in (killed / "metrics.jsonl").read_text().splitlines()]
     assert [e["resumed"] for e in events if e["event"] == "start"] == [False, True]
     assert events[-1]["event"] == "end" and json.loads((killed / "results.json").read_text())["updates"] == 2
-    assert "2 done, 0 failed, 0 left to others or stale" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "train semantic_s0 (resume, from its last checkpoint, updates logged to 2 of 2)" in out
+    assert "2 done, 0 failed, 0 left to others or stale" in out
 
 
 @pytest.mark.slow

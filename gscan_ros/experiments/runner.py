@@ -214,8 +214,9 @@ class Runner:
             work = run_dir / RETRAIN if state.retrain or state.status == "stale" else run_dir
             if state.status in ("new", "resume", "stale"):
                 where = f", in {RETRAIN}/" if work != run_dir else ""
-                start = state.updates if state.status == "resume" else 0  # new and stale runs start over
-                self.echo(f"train {spec.name} ({state.status}{where}, from update {start} of {cfg.max_updates})")
+                start = (f"from its last checkpoint, updates logged to {state.updates}"  # last.pt may be older
+                         if state.status == "resume" else "from update 0")  # new and stale runs start over
+                self.echo(f"train {spec.name} ({state.status}{where}, {start} of {cfg.max_updates})")
                 self._train(spec, work, data_dir, lock, resume=state.status == "resume", archive_into=run_dir)
             if not state.promote:
                 self.echo(f"evaluate {spec.name} on {', '.join(spec.splits)}")

@@ -1,14 +1,25 @@
 """Shared by the benches: a dataset to measure on when `--data` is not given, a fresh
-model with its training update on a dataset's batches, and a torchrun launch that stays
-on the loopback interface."""
+model with its training update on a dataset's batches, a torchrun launch that stays
+on the loopback interface, and `LABEL=PATH` arguments."""
 from __future__ import annotations
 
+import argparse
 import contextlib
 import os
 import socket
 import sys
 import tempfile
 from typing import Iterator
+
+
+def labelled(what: str):
+    """An argparse type for `LABEL=PATH`, naming `what` the path is in its error."""
+    def parse(text: str) -> tuple[str, str]:
+        label, sep, path = text.partition("=")
+        if not sep or not label or not path:
+            raise argparse.ArgumentTypeError(f"expected LABEL={what}, got {text!r}")
+        return label, path
+    return parse
 
 
 @contextlib.contextmanager

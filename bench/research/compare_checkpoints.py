@@ -16,19 +16,16 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from pathlib import Path
 
-
-def labelled(text: str) -> tuple[str, str]:
-    label, sep, path = text.partition("=")
-    if not sep or not label or not path:
-        raise argparse.ArgumentTypeError(f"expected LABEL=CHECKPOINT, got {text!r}")
-    return label, path
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # bench/, for the benches' _data
+from _data import labelled  # noqa: E402
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", required=True, help="dataset with the test splits (bags or dataset.txt)")
-    ap.add_argument("--checkpoint", type=labelled, nargs="+", required=True, metavar="LABEL=CKPT",
+    ap.add_argument("--checkpoint", type=labelled("CHECKPOINT"), nargs="+", required=True, metavar="LABEL=CKPT",
                     help="checkpoints to compare; the first is the reference")
     ap.add_argument("--splits", nargs="+", help="test splits (default: every one the data has)")
     ap.add_argument("--max-examples", type=int, default=1000, help="seeded subset per split (0 = all)")

@@ -17,17 +17,14 @@ import argparse
 import json
 import sys
 from collections import defaultdict
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # bench/, for the benches' _data
+from _data import labelled  # noqa: E402
 
 SIZE_WORDS = ("big", "small")
 DISTANCE_BINS = (0, 4, 8, 12, 16)  # lower ends; the last bin is open
 LEG_LENGTHS = (2, 4, 6, 8, 10, 11)  # first-leg lengths printed (cells)
-
-
-def labelled(text: str) -> tuple[str, str]:
-    label, sep, path = text.partition("=")
-    if not sep or not label or not path:
-        raise argparse.ArgumentTypeError(f"expected LABEL=PREDICTIONS, got {text!r}")
-    return label, path
 
 
 def first_leg(actions: list[str]) -> tuple[int, int]:
@@ -56,7 +53,7 @@ def percent(hits: int, n: int) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("predictions", nargs="+", type=labelled, metavar="LABEL=PREDICTIONS",
+    ap.add_argument("predictions", nargs="+", type=labelled("PREDICTIONS"), metavar="LABEL=PREDICTIONS",
                     help="predictions.json written by `gscan-ros evaluate` (without --no-predictions)")
     args = ap.parse_args()
     models = {}

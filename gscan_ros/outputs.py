@@ -39,9 +39,10 @@ log = logging.getLogger(__name__)
 PARTIAL = ".partial-"
 _PARTIAL_NAME = re.compile(rf"\..+{re.escape(PARTIAL)}(\d+)(\.\w+)?")
 # OSErrors of writing that are the machine's state, not a bug: reported as one line
-# (ENOENT: a folder where no file can be made, such as /proc).
+# (ENOENT: a folder where no file can be made, such as /proc; ENAMETOOLONG: a name the
+# file system refuses).
 WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.EACCES, errno.EPERM,
-                          errno.ENOENT})
+                          errno.ENOENT, errno.ENAMETOOLONG})
 
 
 class OutputError(GscanError):
@@ -192,6 +193,9 @@ class _Lock:
 
     def __enter__(self) -> "_Lock":
         parent = self.path.parent
+        blocking = file_in_the_way(parent)
+        if blocking is not None:
+            raise OutputError(f"cannot write {self.output}: {blocking} is a file, not a folder")
         self._made = [p for p in (parent, *parent.parents) if not p.exists()]
         parent.mkdir(parents=True, exist_ok=True)
         try:

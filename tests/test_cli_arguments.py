@@ -20,7 +20,8 @@ from model_support import tiny_checkpoint
 CPUS = available_cpus()
 
 # (argv, text the error line must contain). {data}: an existing dataset path, {file}: an
-# existing plain file, {missing}: a path that does not exist, {ckpt}: a valid checkpoint.
+# existing plain file, {missing}: a path that does not exist, {long}: a name longer than any
+# file system takes, {ckpt}: a valid checkpoint.
 BAD_ARGUMENTS = [
     # generate
     ("generate --out {tmp}/g --examples 5 --seed -1", "--seed"),
@@ -47,6 +48,9 @@ BAD_ARGUMENTS = [
     ("augment --data {data} --out {tmp}/a --method geca --seed -1", "--seed"),
     # verify
     ("verify {missing}", "DATASET"),
+    ("verify {long}", "File name too long"),
+    ("evaluate --data {data} --out {long}", "--out"),
+    ("render {data} --out {long}.gif", "--out"),
     ("bag repair {missing} --out {tmp}/r", "BAG"),
     ("bag repair {data} --out {file}", "--out"),
     ("verify {data} --limit 0", "--limit"),
@@ -145,6 +149,9 @@ BAD_ARGUMENTS = [
     ("bringup --max-steps -5", "--max-steps"),
     ("bringup --index -1", "--index"),
     ("bringup --seed -2", "--seed"),
+    ("bringup --record {file}/bag", "--record"),
+    ("bringup --checkpoint {missing}", "--checkpoint"),
+    ("demo --out {file}/run", "--out"),
 ]
 if not torch.cuda.is_available():  # CI: a GPU asked for and not there
     BAD_ARGUMENTS += [(f"{command} --device cuda", "no CUDA GPU") for command in
@@ -168,7 +175,7 @@ def workdir(tmp_path, monkeypatch):
 def _fill(template: str, tmp) -> list[str]:
     values = {"tmp": tmp, "data": tmp / "dataset.txt", "file": tmp / "notes.txt", "missing": tmp / "missing",
               "png": tmp / "old.png", "yaml_list": tmp / "list.yaml", "yaml_model_list": tmp / "model_list.yaml",
-              "yaml_latin1": tmp / "latin1.yaml"}
+              "yaml_latin1": tmp / "latin1.yaml", "long": tmp / ("n" * 300)}
     return [word.format(**values) for word in template.split()]
 
 

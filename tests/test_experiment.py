@@ -33,6 +33,7 @@ from gscan_ros.experiments.state import (
 from gscan_ros.outputs import PARTIAL
 from gscan_ros.runtime import MKL_SHIM, available_cpus, mkl_shim_env
 from gscan_ros.training.failures import FAILURE_KINDS
+from gscan_ros.user_files import file_sha256
 
 REPO = Path(__file__).resolve().parents[1]
 TINY = {"max_updates": 2, "batch_size": 16, "validate_every": 2, "checkpoint_every": 2, "log_every": 1,
@@ -445,9 +446,8 @@ def test_a_run_on_another_dataset_folder_is_stale(tmp_path, recorded_in, finishe
         assert state.detail == f"data changed: {trained_on.name} -> {spec.data.directory(plan.data_root).name}"
 
 
-def test_a_finished_run_without_its_weights_is_stale(tmp_path):
-    """A run whose model.pt is gone has numbers nobody can re-check: the plan retrains it
-    (`--restart-stale`), its old results kept until the retrain is evaluated."""
+def _finished_run(tmp_path):
+    """(plan, spec, cfg, run folder) of a run whose training ended, with nothing else."""
     plan = load_plan(write_plan(tmp_path / "plan.yaml", tmp_path))
     spec = plan.runs[0]
     cfg = resolve_config(plan, spec)
@@ -456,13 +456,36 @@ def test_a_finished_run_without_its_weights_is_stale(tmp_path):
     (run / "config.yaml").write_text(yaml.safe_dump(cfg.resolved()))
     (run / "metrics.jsonl").write_text("".join(json.dumps(e) + "\n" for e in [
         {"event": "start", "step": 0}, {"event": "end", "step": cfg.max_updates}]))
-    (run / "results.json").write_text(json.dumps({
-        "updates": cfg.max_updates, "evaluation": {"splits": list(spec.splits), "max_examples": spec.eval_max_examples},
-        "data": {}}))
+    return plan, spec, cfg, run
+
+
+def _results_of(spec, cfg, **evaluation) -> str:
+    return json.dumps({"updates": cfg.max_updates, "data": {}, "evaluation": {
+        "splits": list(spec.splits), "max_examples": spec.eval_max_examples, **evaluation}})
+
+
+def test_a_finished_run_without_its_weights_is_stale(tmp_path):
+    """A run whose model.pt is gone has numbers nobody can re-check, or none at all: the
+    plan retrains it (`--restart-stale`), its old results kept until the retrain is evaluated."""
+    plan, spec, cfg, run = _finished_run(tmp_path)
+    state = run_state(run, spec, cfg, plan.data_root)
+    assert (state.status, state.detail) == ("stale", "no weights (model.pt) to evaluate")
+    (run / "results.json").write_text(_results_of(spec, cfg))
     state = run_state(run, spec, cfg, plan.data_root)
     assert (state.status, state.detail) == ("stale", "no weights (model.pt) to re-check its results")
     (run / "model.pt").write_bytes(b"")
     assert run_state(run, spec, cfg, plan.data_root).status == "done"
+
+
+def test_results_of_other_weights_are_evaluated_again(tmp_path):
+    """A run retrained by hand (`train --overwrite`) to the same update count keeps the old
+    results.json; the weights' digest recorded in it tells them apart."""
+    plan, spec, cfg, run = _finished_run(tmp_path)
+    (run / "model.pt").write_bytes(b"the retrained weights")
+    (run / "results.json").write_text(_results_of(spec, cfg, checkpoint_sha256=file_sha256(run / "model.pt")))
+    assert run_state(run, spec, cfg, plan.data_root).status == "done"
+    (run / "model.pt").write_bytes(b"weights trained again")
+    assert run_state(run, spec, cfg, plan.data_root).status == "evaluate"
 
 
 def test_a_start_without_a_checkpoint_is_new_and_says_it_starts_over(tmp_path, capsys):
@@ -487,6 +510,11 @@ def test_workers_partition_the_plan_in_seed_rounds(tmp_path, capsys):
     assert experiment(tmp_path / "plan.yaml", "--dry-run", "--worker", "1/2") == 0
     out = capsys.readouterr().out
     assert out.startswith("worker 1/2:") and "2 runs: 0 done, 0 running, 2 left" in out and "a_s0" not in out
+    # A job array wider than the plan: the workers left without a run say so and succeed.
+    for args in (("--dry-run", "--worker", "7/8"), ("--worker", "7/8")):
+        assert experiment(tmp_path / "plan.yaml", *args) == 0
+        assert "no run of the plan's 5 falls to this worker" in capsys.readouterr().out
+    assert not (tmp_path / "results").exists()
 
 
 BAD_PLANS = [

@@ -6,6 +6,7 @@ reported like every other gscan-ros error: one line naming the argument, exit st
 from __future__ import annotations
 
 import argparse
+import functools
 import math
 from pathlib import Path
 from typing import Callable
@@ -102,10 +103,25 @@ def name_list(text: str) -> list[str]:
 
 
 # -------------------------------------------------------------------------------- paths
+def _probing(check: Callable[[str], Path]) -> Callable[[str], Path]:
+    """A path that cannot even be looked at (a name too long, a folder not readable) is a
+    usage error too: pathlib passes such an OSError on, which argparse would not catch."""
+    @functools.wraps(check)
+    def probe(text: str) -> Path:
+        try:
+            return check(text)
+        except OSError as exc:
+            raise argparse.ArgumentTypeError(f"{text!r}: {exc.strerror or exc}") from None
+
+    return probe
+
+
+@_probing
 def existing_file(text: str) -> Path:
     return _existing(text, "file")
 
 
+@_probing
 def existing_path(text: str) -> Path:
     """A file or directory that exists (a dataset.txt, its directory, a bag)."""
     path = Path(text)
@@ -114,6 +130,7 @@ def existing_path(text: str) -> Path:
     return path
 
 
+@_probing
 def existing_dir(text: str) -> Path:
     """A directory that exists (a training run)."""
     return _existing(text, "directory")
@@ -128,6 +145,7 @@ def _existing(text: str, kind: str) -> Path:
     return path
 
 
+@_probing
 def output_dir(text: str) -> Path:
     """A directory to write into: existing, or creatable (no file in the way)."""
     path = Path(text)
@@ -141,6 +159,7 @@ def output_file(*suffixes: str) -> Callable[[str], Path]:
     """A file to write, ending in one of `suffixes`, in a folder that exists; whether an
     existing file may be replaced is `gscan_ros.outputs.check_targets`'s call (it depends
     on --overwrite)."""
+    @_probing
     def check(text: str) -> Path:
         path = Path(text)
         if path.suffix.lower() not in suffixes:

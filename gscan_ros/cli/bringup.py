@@ -7,19 +7,19 @@ e.g. with `ros2 topic pub /command std_msgs/msg/String "{data: 'walk to a red ci
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
-from gscan_ros.cli.args import int_in, nonnegative_int, positive_int
+from gscan_ros.cli.args import existing_file, existing_path, int_in, nonnegative_int, output_dir, positive_int
 from gscan_ros.nodes.stack import StackOptions  # rclpy and torch are imported only when a stack starts
 from gscan_ros.world.types import GRID_SIZE, SUPPORTED_GRID_SIZES
 
 
 def add_stack_arguments(parser: argparse.ArgumentParser) -> None:
     """Options shared by `bringup` and `demo`."""
-    parser.add_argument("--checkpoint", type=Path, default=None, help="policy checkpoint (default: the shipped model)")
+    parser.add_argument("--checkpoint", type=existing_file, default=None,
+                        help="policy checkpoint (default: the shipped model)")
     parser.add_argument("--parser", default="", help="parse type (default: the checkpoint's)")
     source = parser.add_argument_group("situations (a dataset split, else random sampling)")
-    source.add_argument("--dataset", type=Path, default=None, help="dataset.txt, its directory, or a bag")
+    source.add_argument("--dataset", type=existing_path, default=None, help="dataset.txt, its directory, or a bag")
     source.add_argument("--split", default="test", help="dataset split (default: test)")
     source.add_argument("--index", type=nonnegative_int, default=0, help="first example of the split (default: 0)")
     source.add_argument("--seed", type=nonnegative_int, default=0,
@@ -37,7 +37,7 @@ def register(subparsers) -> None:
         description=__doc__.splitlines()[0],
     )
     add_stack_arguments(p)
-    p.add_argument("--record", type=Path, default=None, metavar="BAG_DIR",
+    p.add_argument("--record", type=output_dir, default=None, metavar="BAG_DIR",
                    help="also record episodes to this bag (a new directory, or an empty one)")
     p.add_argument("--overwrite", action="store_true",
                    help="with --record: replace a bag already at BAG_DIR (only the bag's own files)")

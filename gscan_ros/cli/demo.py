@@ -15,7 +15,7 @@ import os
 import time
 from pathlib import Path
 
-from gscan_ros.cli.args import float_in, nonblank, positive_int
+from gscan_ros.cli.args import float_in, nonblank, output_dir, positive_int
 from gscan_ros.cli.bringup import add_stack_arguments, stack_options
 from gscan_ros.errors import GscanError
 
@@ -29,7 +29,7 @@ def register(subparsers) -> None:
     add_stack_arguments(p)
     p.add_argument("--command", dest="command_text", type=nonblank, default=None,
                    help="command to send (default: the situation's generated one)")
-    p.add_argument("--out", type=Path, default=None,
+    p.add_argument("--out", type=output_dir, default=None,
                    help=f"output directory, new or empty (default: a new {DEFAULT_OUT_ROOT}/<date>_<time>)")
     p.add_argument("--overwrite", action="store_true", help="replace the bag and GIFs of an earlier demo in --out")
     p.add_argument("--episodes", type=positive_int, default=3,
@@ -44,8 +44,6 @@ def run(args: argparse.Namespace) -> int:
     from gscan_ros.outputs import claimed, refuse_links
 
     out = args.out or DEFAULT_OUT_ROOT / time.strftime("%Y%m%d_%H%M%S")
-    if out.exists() and not out.is_dir():
-        raise GscanError(f"--out {out} is a file, not a directory")
     with claimed(out):
         if out.exists() and any(out.iterdir()) and not args.overwrite:
             raise GscanError(f"--out {out} is not empty; pass --overwrite to replace an earlier demo there")

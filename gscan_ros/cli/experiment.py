@@ -74,6 +74,9 @@ def run(args: argparse.Namespace) -> int:
                     restart_stale=args.restart_stale, progress=not args.quiet, echo=tqdm.write)
     who = f"worker {args.worker[0]}/{args.worker[1]}: " if args.worker else ""
     print(f"{who}plan {plan.path} -> {plan.results}/")
+    if not runner.share:  # a job array with more workers than the plan has runs
+        print(f"{who}no run of the plan's {len(plan.runs)} falls to this worker")
+        return 0
     if args.dry_run:
         print("\n".join(runner.status_lines(runner.states())))
         return 0

@@ -141,7 +141,7 @@ class Runner:
         for name, recipe in recipes.items():
             lines.append(f"  data {name:{names}s} {dataset_state(recipe, self.plan.data_root):24s} "
                          f"{recipe.directory(self.plan.data_root)}")
-        width = max(len(st.spec.name) for st in states)
+        width = max((len(st.spec.name) for st in states), default=0)
         for st in states:
             lines.append(f"  {st.status:8s} {st.spec.name:{width}s} {st.updates:>7d}/{st.max_updates:<7d} {st.detail}"
                          .rstrip())

@@ -20,7 +20,7 @@ from gscan_ros.errors import GscanError
 from gscan_ros.experiments.locks import FileLock
 from gscan_ros.experiments.plan import DataRecipe, RunSpec
 from gscan_ros.training.metrics_log import read_events
-from gscan_ros.user_files import read_json, read_yaml
+from gscan_ros.user_files import file_sha256, read_json, read_yaml
 
 STATES = ("done", "evaluate", "running", "resume", "new", "stale")
 LOCK = ".lock"
@@ -172,12 +172,14 @@ def _files_state(run_dir: Path, spec: RunSpec, cfg, data_root: Path) -> RunState
     if data is not None:
         reasons.append(data)
     end = finished_end(events, cfg)
+    model = RunFiles(run_dir).model
     if reasons:
         state.status, state.detail = "stale", "; ".join(reasons)
-    elif end is not None and _evaluated(results, spec, end):
+    elif end is not None and not model.is_file():  # trained, but its numbers could not be (re-)checked
+        state.status = "stale"
+        state.detail = f"no weights (model.pt) to {'re-check its results' if results else 'evaluate'}"
+    elif end is not None and _evaluated(results, spec, end, model):
         state.status = "done"
-        if not RunFiles(run_dir).model.is_file():  # its numbers could not be re-checked
-            state.status, state.detail = "stale", "no weights (model.pt) to re-check its results"
     elif end is not None:
         state.status = "evaluate"
     elif RunFiles(run_dir).resume_point() is not None:
@@ -240,12 +242,17 @@ def _results(run_dir: Path) -> dict | None:
     return doc if isinstance(doc, dict) else None
 
 
-def _evaluated(results: dict | None, spec: RunSpec, end: dict) -> bool:
+def _evaluated(results: dict | None, spec: RunSpec, end: dict, model: Path) -> bool:
+    """Whether `results` are of this training's end on the plan's splits and example cap,
+    and of these weights where the results name them (results written before the runner
+    recorded `checkpoint_sha256` do not): a run retrained by hand is evaluated again."""
     if results is None:
         return False
     ev = results.get("evaluation") or {}
+    sha = ev.get("checkpoint_sha256")
     return (results.get("updates") == end["step"] and ev.get("splits") == list(spec.splits)
-            and ev.get("max_examples") == spec.eval_max_examples)
+            and ev.get("max_examples") == spec.eval_max_examples
+            and (sha is None or sha == file_sha256(model)))
 
 
 def work_order(states: list[RunState]) -> list[RunState]:

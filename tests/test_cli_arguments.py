@@ -50,6 +50,7 @@ BAD_ARGUMENTS = [
     ("verify {missing}", "DATASET"),
     ("verify {long}", "File name too long"),
     ("evaluate --data {data} --out {long}", "--out"),
+    ("evaluate --data {data} --attention --no-predictions", "--no-predictions"),
     ("render {data} --out {long}.gif", "--out"),
     ("bag repair {missing} --out {tmp}/r", "BAG"),
     ("bag repair {data} --out {file}", "--out"),

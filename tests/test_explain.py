@@ -248,6 +248,9 @@ def test_explain_situation_file_and_step(tmp_path, capsys):
     (["walk to a circle"], "--out FILE"),
     (["--situation", "setup.py", "--out", "x.png"], "--situation needs a COMMAND"),
     (["walk to a circle", "--step", "500", "--out", "x.png"], "--step must be at most"),
+    (["walk to a circle", "--step", "2", "--out", "x.gif"], "--step draws one step as a .png"),
+    (["--progression", ".", "--checkpoint", "setup.py", "--out", "x.png"], "it takes no --checkpoint"),
+    (["--metrics", "--data", "setup.py", "--progression", ".", "--checkpoint", "setup.py"], "it takes no --checkpoint"),
     (["walk to a circle", "--progression", ".", "--out", "x.png"], "no step_<N>.pt snapshots"),
     (["circle the walk", "--out", "x.png"], "not a gSCAN command"),
 ])

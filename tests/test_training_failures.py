@@ -1,8 +1,11 @@
 """Failure kinds: a failed episode classified by replaying both action sequences."""
 from gscan_ros.data.episode import Episode
-from gscan_ros.training.evaluate import EvalResult, Prediction, failure_kind
+from gscan_ros.model.policy import Policy
+from gscan_ros.training.evaluate import EvalResult, Prediction, evaluate_episodes, failure_kind
 from gscan_ros.training.failures import FAILURE_KINDS
 from gscan_ros.world import Action, Heading, Position, Situation, WorldObject, demonstrate
+
+from model_support import tiny_checkpoint, walk_episodes
 
 L, R, W = Action.TURN_LEFT, Action.TURN_RIGHT, Action.WALK
 CIRCLE = WorldObject("circle", "red", 1, Position(1, 1))
@@ -54,3 +57,21 @@ def test_summary_groups_episodes_by_whether_the_gold_moves_the_target():
     assert groups["moves_target"] == {"no": {"examples": 1, "exact_match": 100.0},
                                       "yes": {"examples": 2, "exact_match": 50.0}}
     assert groups["verb"] == {"push": {"examples": 3, "exact_match": 66.67}}
+
+
+def test_a_prediction_longer_than_its_own_cap_never_stopped():
+    """The cap an evaluation decoded with decides whether the last action was an EOS."""
+    gold = demonstrate(SITUATION, "walk to a circle")
+    long = predicted("walk to a circle", gold + [Action.STAY] * 10)  # 17 actions
+    assert long.failure == "right_end_state"  # under the default cap of 120: it stopped
+    capped = Prediction(long.episode, long.actions, max_steps=12)
+    assert capped.failure == "no_stop"
+
+
+def test_evaluation_classifies_failures_at_the_cap_it_decoded_with(tmp_path):
+    policy = Policy.from_checkpoint(tiny_checkpoint(tmp_path / "tiny.pt", seed=1))  # a seed that never stops
+    result = evaluate_episodes(policy, walk_episodes(8), max_steps=2)
+    assert {p.max_steps for p in result.predictions} == {2}
+    assert any(len(p.actions) > 2 for p in result.predictions)  # some ran into the cap
+    for p in result.predictions:
+        assert (p.failure == "no_stop") == (len(p.actions) > 2)

@@ -39,9 +39,10 @@ def register(subparsers) -> None:
                    help="output directory (default: runs/eval)")
     p.add_argument("--overwrite", action="store_true", help="replace the results of an earlier evaluation in DIR")
     p.add_argument("--batch-size", type=positive_int, default=1024, help="episodes decoded together (default: 1024)")
-    p.add_argument("--no-predictions", action="store_true", help="skip predictions.json")
-    p.add_argument("--attention", action="store_true",
-                   help="store every word's attention map per step in predictions.json (large: ~85 kB per episode)")
+    kept = p.add_mutually_exclusive_group()  # the maps are kept only in predictions.json
+    kept.add_argument("--no-predictions", action="store_true", help="skip predictions.json")
+    kept.add_argument("--attention", action="store_true",
+                      help="store every word's attention map per step in predictions.json (large: ~85 kB per episode)")
     p.add_argument("--threads", type=thread_count, default=0,
                    help="torch threads (0 = torch default; at most the CPUs available)")
     p.add_argument("--seed", type=nonnegative_int, default=0, help="seed of the --max-examples subset")
@@ -73,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
         episodes = select_test_episodes(args.data, args.splits, args.max_examples, args.seed)
         start = time.time()
         result = evaluate_episodes(policy, episodes, batch_size=args.batch_size, ranks=ranks,
-                                   record_attention=args.attention and not args.no_predictions,
+                                   record_attention=args.attention,
                                    progress=not args.quiet and ranks.is_main)
         if result is None:  # not rank 0: rank 0 has every prediction and writes the reports
             return 0

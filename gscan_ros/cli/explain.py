@@ -53,7 +53,7 @@ def register(subparsers) -> None:
     p.add_argument("--index", type=nonnegative_int, default=0, help="example index in --split (default: 0)")
     p.add_argument("--checkpoint", type=existing_file, metavar="CKPT", help="checkpoint (default: the shipped model)")
     when = p.add_mutually_exclusive_group()
-    when.add_argument("--step", type=nonnegative_int, default=0, metavar="T",
+    when.add_argument("--step", type=nonnegative_int, default=None, metavar="T",
                       help="the decoding step to show (default: 0, the initial state)")
     when.add_argument("--gif", action="store_true",
                       help="an animated GIF with every step (also implied by --out F.gif)")
@@ -92,6 +92,8 @@ def run(args: argparse.Namespace) -> int:
 
 def _check_combination(args: argparse.Namespace) -> None:
     """Arguments that only make sense together (one line, exit 1, before any work)."""
+    if args.progression and args.checkpoint:
+        raise GscanError("--progression reads the run's own snapshots; it takes no --checkpoint")
     if args.metrics:
         if args.data is None:
             raise GscanError("--metrics needs --data DS (the episodes to measure on)")
@@ -105,6 +107,9 @@ def _check_combination(args: argparse.Namespace) -> None:
         raise GscanError(f"--gif writes a .gif, but --out is {args.out}")
     if args.progression and (args.gif or is_gif):
         raise GscanError("--progression draws one .png (snapshots as columns); no GIF")
+    if is_gif and args.step is not None:
+        raise GscanError(f"--step draws one step as a .png; the GIF {args.out} shows every step")
+    args.step = args.step or 0
     if args.situation and not args.command_text:
         raise GscanError("--situation needs a COMMAND")
 

@@ -117,8 +117,7 @@ class Plan:
     path: Path
     results: Path
     data_root: Path
-    eval_max_examples: int
-    eval_batch_size: int
+    eval_batch_size: int  # every run's evaluation batch (each run's own example cap is on its RunSpec)
     datasets: dict[str, DataRecipe]
     runs: list[RunSpec]
 
@@ -216,8 +215,8 @@ def load_plan(path: str | Path, results: str | Path | None = None, data_root: st
         blocking = file_in_the_way(folder)
         if blocking is not None:
             raise PlanError(f"{where}: {key} must be a folder, but {quoted(str(blocking))} is a file")
-    return Plan(path=path, results=Path(results), data_root=Path(data_root), eval_max_examples=max_examples,
-                eval_batch_size=batch_size, datasets=datasets, runs=runs)
+    return Plan(path=path, results=Path(results), data_root=Path(data_root), eval_batch_size=batch_size,
+                datasets=datasets, runs=runs)
 
 
 def _expand(entries: list[tuple], where: str) -> list[RunSpec]:

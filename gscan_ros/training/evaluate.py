@@ -46,6 +46,7 @@ class Prediction:
     episode: Episode
     actions: list[Action]
     attention: dict[str, list[np.ndarray]] | None = None  # word -> one float32[36] map per step
+    max_steps: int = MAX_STEPS  # the decoding cap it ran under: more actions than this never stopped
 
     @property
     def token_accuracy(self) -> float:
@@ -57,14 +58,16 @@ class Prediction:
 
     @cached_property
     def failure(self) -> str | None:
-        """`failure_kind` at the default cap, replayed once (summary and predictions file both read it)."""
+        """`failure_kind` at the cap it was decoded with, replayed once (summary and predictions file both read it)."""
         return failure_kind(self)
 
 
-def failure_kind(prediction: Prediction, max_steps: int = MAX_STEPS) -> str | None:
+def failure_kind(prediction: Prediction, max_steps: int | None = None) -> str | None:
     """The `FAILURE_KINDS` entry of a failed prediction (None for an exact match); more
-    than `max_steps` actions means the decoding cap, not an EOS, ended it."""
-    return classify_failure(prediction.episode, prediction.actions, stopped=len(prediction.actions) <= max_steps)
+    than `max_steps` actions (default: the prediction's own cap) means the decoding cap,
+    not an EOS, ended it."""
+    cap = prediction.max_steps if max_steps is None else max_steps
+    return classify_failure(prediction.episode, prediction.actions, stopped=len(prediction.actions) <= cap)
 
 
 @dataclass
@@ -194,7 +197,7 @@ def evaluate_episodes(model_or_policy, episodes: Sequence[Episode], batch_size: 
     if parts is None:
         return None
     merged = {start: preds for part in parts for start, preds in part.items()}
-    return EvalResult([Prediction(ep, actions, attention)
+    return EvalResult([Prediction(ep, actions, attention, max_steps)
                        for start in sorted(merged)
                        for ep, (actions, attention) in zip(episodes[start : start + batch_size], merged[start])])
 
@@ -203,7 +206,7 @@ def _decode_batch(policy: Policy, episodes: Sequence[Episode], max_steps: int, r
     graphs = [policy.parse(ep.command) for ep in episodes]
     rollout = policy.rollout(graphs)
     worlds = [World(ep.situation) for ep in episodes]
-    preds = [Prediction(ep, [], {} if record else None) for ep in episodes]
+    preds = [Prediction(ep, [], {} if record else None, max_steps) for ep in episodes]
     live = list(range(len(episodes)))
     eos = int(Action.EOS)
     for _ in range(max_steps + 1):

@@ -368,3 +368,31 @@ def test_an_all_topics_recording_stopped_mid_episode_ends_it_preempted(tmp_path)
     reader = BagEpisodeReader(bag, include_incomplete=True)
     assert [r.outcome for r in reader.records()] == [es.COMPLETE]
     assert reader.report.drop_reasons == {"no end report (the recording stopped first)": 1}
+
+
+def test_a_bad_observation_costs_its_episode_when_states_are_decoded(tmp_path):
+    """Observations are decoded only for training (`decode_states`); one cut short there
+    drops its episode with the reason, like any bad message, not the whole read."""
+    rng = random.Random(6)
+    stack = LiveStack(make_episodes(1, seed=6)[0].situation)
+    stack.state()
+    expected, bad = [], None
+    for i, command in enumerate(("walk to a red circle", "walk to a blue circle", "walk to a red circle")):
+        situation, actions = stack.world.snapshot(), stack.route(rng, 4)
+        stack.command(command)
+        start = len(stack.messages)
+        stack.episode(actions)
+        if i == 1:  # the second episode's state after its first action (not the third's start), 5 bytes short
+            bad = next(k for k, m in enumerate(stack.messages) if k > start and m[0] == "/observation")
+        else:
+            expected.append(Episode(command, situation, actions, split=LIVE_SPLIT, example_id=None))
+    topic, msg_type, data, publish_ns, late_ns = stack.messages[bad]
+    stack.messages[bad] = (topic, msg_type, data[:-5], publish_ns, late_ns)
+    with BagWriter(tmp_path / "bag") as writer:
+        stack.record(writer, recorder=False)
+    assert len(list(iter_bag_episodes(tmp_path / "bag"))) == 3  # not decoded, it costs nothing
+    reader = BagEpisodeReader(tmp_path / "bag", decode_states=True)
+    records = list(reader.records())
+    assert [r.episode for r in records] == expected
+    assert all(len(r.states) == len(r.episode.actions) + 1 for r in records)
+    assert reader.report.drop_reasons == {"a bad /observation message": 1} and not reader.report.complete

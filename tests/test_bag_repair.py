@@ -4,6 +4,7 @@ import json
 import logging
 import random
 from collections import Counter
+from pathlib import Path
 
 import pytest
 from actionlib_msgs.msg import GoalStatus
@@ -360,3 +361,13 @@ def test_repair_overwrite_never_deletes_a_folder_that_holds_more_than_a_bag(inta
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "not a bag (holds figures, thesis.tex)" in err[0]
     assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+
+
+def test_repairing_a_format_1_bag_keeps_its_format_and_its_episodes(tmp_path):
+    """The messages are copied as they are, so the copy must still say format 1."""
+    source = Path(__file__).parent / "fixtures" / "bag_v1"  # written by the format-1 writer
+    expected = list(iter_bag_episodes(source))
+    assert expected
+    repair_bag(source, tmp_path / "copy")
+    assert read_bag_info(tmp_path / "copy").format_version == 1
+    assert list(iter_bag_episodes(tmp_path / "copy")) == expected

@@ -1,5 +1,6 @@
 """Bags written by write_bag / BagWriter read back as the same Episodes, in the documented
 layout (format 2: the live topics with synthetic times); format-1 bags still read."""
+import errno
 import json
 import random
 from pathlib import Path
@@ -7,10 +8,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 from mcap.reader import make_reader
+from mcap.writer import Writer
 from no_ros_support import run_without_ros
 
 from gscan_ros import interface
-from gscan_ros.data.bag import BagEpisodeReader, BagWriter, iter_bag_episodes, read_bag_info, write_bag
+from gscan_ros.data.bag import (
+    EPISODE_PERIOD_NS,
+    STEP_NS,
+    BagEpisodeReader,
+    BagWriter,
+    iter_bag_episodes,
+    read_bag_info,
+    write_bag,
+)
 from gscan_ros.data.bag_cache import load_episode_cache
 from gscan_ros.data.bag_format import PROLOGUE_NS
 from gscan_ros.errors import DatasetFormatError
@@ -18,7 +28,7 @@ from gscan_ros.interface import GRID_FRAME
 from gscan_ros.language import get_parser
 from gscan_ros.world.render import render
 from gscan_ros.world.world import World
-from msg_adapters import cdr_to_observation, time_ns
+from msg_adapters import cdr_to_observation, text_to_cdr, time_ns
 
 from bag_support import earlier_observation_cdr, legacy_bag, make_episodes, write_legacy_episode
 
@@ -328,3 +338,34 @@ def test_bags_are_written_read_and_repaired_without_ros(tmp_path):
     )
     assert done.returncode == 0, done.stderr[-3000:]
     assert done.stdout.endswith("episodes after repair; False\n")
+
+
+def test_format_1_plain_text_command_is_a_dropped_episode_not_a_recovered_one(tmp_path, episodes):
+    """A command typed as plain text has no situation to follow it from: the report counts
+    it as dropped, with the reason, never among the complete episodes read."""
+    with legacy_bag(tmp_path / "v1") as writer:
+        write_legacy_episode(writer, episodes[0], 0)
+        t0 = 1 * EPISODE_PERIOD_NS
+        writer.write_message("/command", interface.COMMAND.type, text_to_cdr("walk to a circle"), t0)
+        for t, token in enumerate(("walk", "<eos>")):
+            writer.write_message("/action", interface.ACTION.type, text_to_cdr(token), t0 + (t + 1) * STEP_NS)
+        write_legacy_episode(writer, episodes[2], 2)
+    reader = iter_bag_episodes(tmp_path / "v1")
+    assert list(reader) == [episodes[0], episodes[2]]
+    assert reader.report.episodes_read == 2 and reader.report.incomplete_episodes == 1
+    assert reader.report.drop_reasons == {"a /command with no episode header": 1}
+
+
+def test_a_close_whose_finish_fails_leaves_the_bag_unfinished(tmp_path, episodes, monkeypatch):
+    """A full disk while the MCAP summary is written: metadata.yaml must not say closed."""
+    def full_disk(self):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    writer = BagWriter(tmp_path / "bag").open()
+    writer.write_episode(episodes[0])
+    monkeypatch.setattr(Writer, "finish", full_disk)
+    with pytest.raises(OSError):
+        writer.close()
+    assert writer._file is None  # closed, not leaked
+    info = read_bag_info(tmp_path / "bag")
+    assert not info.closed

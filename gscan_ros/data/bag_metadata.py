@@ -114,7 +114,7 @@ def mcap_file_name(bag_dir: Path) -> str:
     return f"{bag_dir.name}_0.mcap"
 
 
-def write_metadata(
+def bagfile_information(
     bag_dir: Path,
     *,
     topic_types: dict[str, str],
@@ -122,8 +122,8 @@ def write_metadata(
     start_ns: int | None,
     end_ns: int | None,
     custom: dict[str, str],
-) -> str:
-    """Write `metadata.yaml` atomically (tmp + rename); returns the bagfile-information YAML."""
+) -> dict:
+    """The `rosbag2_bagfile_information` of a bag of one MCAP file, as rosbag2 writes it."""
     total = sum(counts.values())
     start = start_ns if start_ns is not None else 0
     duration = (end_ns - start_ns) if (start_ns is not None and end_ns is not None) else 0
@@ -162,11 +162,20 @@ def write_metadata(
         "custom_data": custom,
         "ros_distro": "jazzy",
     }
+    return info
+
+
+def serialized_information(info: dict) -> str:
+    """`info` as rosbag2's MCAP storage embeds it in the file (the `rosbag2` metadata record)."""
+    return yaml.dump(info, Dumper=YamlDumper, sort_keys=False)
+
+
+def write_metadata(bag_dir: Path, info: dict) -> None:
+    """Write `metadata.yaml` holding `info` atomically (tmp + rename)."""
     text = yaml.dump({"rosbag2_bagfile_information": info}, Dumper=YamlDumper, sort_keys=False)
     tmp = bag_dir / f".{METADATA_FILE}.tmp"
     tmp.write_text(text, encoding="utf-8")
     os.replace(tmp, bag_dir / METADATA_FILE)
-    return yaml.dump(info, Dumper=YamlDumper, sort_keys=False)
 
 
 def read_bag_info(bag_dir: str | os.PathLike) -> BagInfo:

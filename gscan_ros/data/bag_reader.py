@@ -44,6 +44,10 @@ from msg_adapters import ObservationDecoder, cdr_to_action, cdr_to_episode_statu
 log = logging.getLogger("gscan_ros.data.bag")
 
 
+class _Unusable(Exception):
+    """An assembled episode a message of which cannot be read: dropped, with this reason."""
+
+
 @dataclass(frozen=True)
 class RecordedEpisode:
     """An episode as recorded: the Episode, its observations (if decoded) and graph JSON."""
@@ -53,7 +57,6 @@ class RecordedEpisode:
     states: np.ndarray | None  # uint8[T+1, G, G, 16]
     graph_json: str | None
     outcome: str = es.COMPLETE
-    key: tuple[str, str, int] | None = None  # format 2: (stack namespace, report id, start stamp) of its reports
 
 
 @dataclass
@@ -165,9 +168,10 @@ class BagEpisodeReader(Iterator[Episode]):
             return
         wanted = ((done.outcome == es.COMPLETE or self.include_incomplete)
                   and (self.splits is None or done.header["split"] in self.splits))
-        record = self._assembled(self.info.path, namespace, done, graphs) if wanted else None
-        if wanted and record is None:  # a situation no World takes: it costs the episode, not the bag
-            assembler.discard(done, "its /situation is no gSCAN situation")
+        try:
+            record = self._assembled(self.info.path, done, graphs) if wanted else None
+        except _Unusable as exc:  # it costs the episode, not the bag
+            assembler.discard(done, str(exc))
             return
         if done.outcome == es.COMPLETE:
             self.report.episodes_read += 1
@@ -177,22 +181,23 @@ class BagEpisodeReader(Iterator[Episode]):
             self.report.count_grid_size(record.episode.situation.grid_size)
             yield record
 
-    def _assembled(self, path: Path, namespace: str, done: AssembledEpisode,
-                   graphs: GraphCache) -> RecordedEpisode | None:
-        """The episode `done` as read (None: its situation is no gSCAN situation)."""
+    def _assembled(self, path: Path, done: AssembledEpisode, graphs: GraphCache) -> RecordedEpisode:
+        """The episode `done` as read; `_Unusable` when a message it needs cannot be."""
         where = f"{path}: episode {done.header['episode_id']}"
         try:
             episode = episode_from_header(done.header, done.actions, str(path))
         except GscanError:
-            return None
+            raise _Unusable("its /situation is no gSCAN situation") from None
         graphs.attach(episode, done.graph_json, where)
         states = None
         if self.decode_states:
             # A recorder that lagged may lack some states: they are the world's, so replay them.
-            states = np.stack([self._decode_observation(d) for d in done.observations] if done.observations
-                              else episode.states())
-        return RecordedEpisode(episode, done.header, states, done.graph_json, done.outcome,
-                               (namespace, done.status.episode_id, done.status.start_ns))
+            try:
+                observed = [self._decode_observation(d) for d in done.observations or ()]
+            except GscanError:
+                raise _Unusable("a bad /observation message") from None
+            states = np.stack(observed or episode.states())
+        return RecordedEpisode(episode, done.header, states, done.graph_json, done.outcome)
 
     def _live_messages(self) -> Iterator[Message | object]:
         """The stacks' messages (topics relative to their namespace), and LOSS where data was lost."""
@@ -247,6 +252,9 @@ class BagEpisodeReader(Iterator[Episode]):
                     current.actions.append(action)
                     continue
                 done, current = current, None
+                if done.header is None:  # a command typed as plain text: no situation to follow it from
+                    self._drop(done, "a /command with no episode header")
+                    continue
                 if done.outcome != es.COMPLETE:
                     self.report.count_outcome(done.outcome)
                     if not self.include_incomplete:
@@ -281,10 +289,12 @@ class BagEpisodeReader(Iterator[Episode]):
         selected = self.splits is None or header.get("split") in self.splits
         return _OpenEpisode(header=header, selected=selected, outcome=outcome)
 
-    def _drop(self, episode: _OpenEpisode | None) -> None:
+    def _drop(self, episode: _OpenEpisode | None, reason: str | None = None) -> None:
         if episode is not None:
             self.report.incomplete_episodes += 1
             self.report.discarded_messages += episode.messages
+            if reason is not None:
+                self.report.drop_reasons[reason] = self.report.drop_reasons.get(reason, 0) + 1
 
     def _decode_action(self, path: Path, data: bytes, episode: _OpenEpisode) -> Action:
         try:

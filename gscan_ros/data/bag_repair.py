@@ -120,6 +120,7 @@ class _RepairCopier:
     def copy(self) -> None:
         writer = self.writer
         writer.custom_data = {k: v for k, v in self.info.custom.items() if not k.startswith("gscan_ros.")}
+        writer.format_version = self.info.format_version  # the messages are copied, not converted
         writer.open()
         scratch_report = BagReadReport(self.info.path)  # the reader's report says what was lost
         for path in self.info.mcap_paths:

@@ -26,10 +26,12 @@ from gscan_ros.data.bag_metadata import (
     STATUS_CLOSED,
     STATUS_RECORDING,
     BagInfo,
+    bagfile_information,
     mcap_file_name,
     read_bag_info,
     remove_bag_files,
     replaceable_bag,
+    serialized_information,
     write_metadata,
 )
 from gscan_ros.data.bag_schema import (
@@ -104,6 +106,8 @@ class BagWriter:
         self._publish_ordered = True  # every message so far in publish-time order (readers skip reordering)
         self._last_publish_ns = 0
         self.custom_data: dict[str, str] = {}  # extra metadata.yaml custom_data (`bag repair`'s notes)
+        # The episode format the messages follow: `bag repair` copies a format-1 bag as format 1.
+        self.format_version = EPISODE_FORMAT_VERSION
 
     # -- lifecycle -------------------------------------------------------------------
     def open(self) -> "BagWriter":
@@ -116,15 +120,19 @@ class BagWriter:
         return self
 
     def close(self) -> None:
-        """Finish the MCAP summary and write the final `metadata.yaml`."""
+        """Finish the MCAP summary, then write the final `metadata.yaml`: a finish that
+        fails (a full disk) leaves the bag `recording`, as a killed writer's."""
         if self._mcap is None:
             return
-        info_yaml = self._write_metadata(STATUS_CLOSED)
-        # rosbag2's MCAP storage also embeds the bag metadata in the file.
-        self._mcap.add_metadata("rosbag2", {"serialized_metadata": info_yaml})
-        self._mcap.finish()
-        self._file.close()
-        self._mcap = self._file = None
+        info = self._information(STATUS_CLOSED)
+        try:
+            # rosbag2's MCAP storage also embeds the bag metadata in the file.
+            self._mcap.add_metadata("rosbag2", {"serialized_metadata": serialized_information(info)})
+            self._mcap.finish()
+        finally:
+            self._file.close()
+            self._mcap = self._file = None
+        write_metadata(self.bag_dir, info)
 
     def abandon(self) -> None:
         """Stop without finishing: what was written stays an unfinished bag (status
@@ -300,8 +308,11 @@ class BagWriter:
         self._topic_types[topic] = msg_type
         return channel_id
 
-    def _write_metadata(self, status: str) -> str:
-        return write_metadata(
+    def _write_metadata(self, status: str) -> None:
+        write_metadata(self.bag_dir, self._information(status))
+
+    def _information(self, status: str) -> dict:
+        return bagfile_information(
             self.bag_dir,
             topic_types=self._topic_types,
             counts=self._counts,
@@ -310,7 +321,7 @@ class BagWriter:
             custom={
                 **self.custom_data,
                 "gscan_ros.format": EPISODE_FORMAT,
-                "gscan_ros.format_version": str(EPISODE_FORMAT_VERSION),
+                "gscan_ros.format_version": str(self.format_version),
                 "gscan_ros.status": status,
                 "gscan_ros.splits": json.dumps(dict(sorted(self._splits.items()))),
                 "gscan_ros.episodes": str(self.episodes_written),

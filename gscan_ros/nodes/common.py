@@ -72,12 +72,10 @@ def qos_profile(spec: Endpoint | Qos, *, depth: int | None = None) -> QoSProfile
 
 
 # Named profiles (tests and tools subscribe with these).
-LATCHED_QOS = qos_profile(interface.LATCHED)
 # A reader of latched topics that must see every state, not just the newest (recorders,
 # test probes): it gets the stored sample on joining and queues later ones while busy.
 LATCHED_LOG_QOS = qos_profile(interface.LATCHED, depth=interface.LOG_DEPTH)
 EVENT_QOS = qos_profile(interface.EVENTS)
-VIEWER_QOS = qos_profile(interface.VIEWER)
 # A viewer that keeps every frame it gets while busy (the demo's GIFs), best effort as offered.
 VIEWER_LOG_QOS = qos_profile(interface.VIEWER, depth=interface.LOG_DEPTH)
 

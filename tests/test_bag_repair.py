@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 from actionlib_msgs.msg import GoalStatus
 from mcap.reader import make_reader
+from mcap.well_known import SchemaEncoding
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 
@@ -19,7 +20,7 @@ from gscan_ros.data.bag import EPISODE_PERIOD_NS, STEP_NS, BagWriter, iter_bag_e
 from gscan_ros.data.bag_report import BagReadReport
 from gscan_ros.data.bag_scan import LOSS, McapScan
 from gscan_ros.errors import DatasetFormatError
-from msg_adapters import text_to_cdr
+from msg_adapters import message_class, message_definition, msg_to_cdr, text_to_cdr
 
 from bag_support import (
     BAD_MESSAGES,
@@ -371,3 +372,20 @@ def test_repairing_a_format_1_bag_keeps_its_format_and_its_episodes(tmp_path):
     repair_bag(source, tmp_path / "copy")
     assert read_bag_info(tmp_path / "copy").format_version == 1
     assert list(iter_bag_episodes(tmp_path / "copy")) == expected
+
+
+def test_repair_copies_another_nodes_topic_that_shares_a_stack_topics_name(episodes, tmp_path):
+    """`ros2 bag record -a` also takes other nodes' topics; one named `/status` but of another
+    type is no stack topic to the reader, and repair copies it as it is."""
+    bag = tmp_path / "bag"
+    with BagWriter(bag) as writer:
+        for episode in episodes[:3]:
+            writer.write_episode(episode)
+        other = writer.register_channel("/status", "std_msgs/msg/Int32",
+                                        schema=(SchemaEncoding.ROS2, message_definition("std_msgs/msg/Int32").encode()))
+        writer.add_record("/status", other, msg_to_cdr(message_class("std_msgs/msg/Int32")(data=7)), 10 * S, 10 * S, 0)
+    assert list(iter_bag_episodes(bag)) == episodes[:3]
+    repair_bag(bag, tmp_path / "repaired")
+    assert list(iter_bag_episodes(tmp_path / "repaired")) == episodes[:3]
+    assert [m[0] for m in _messages(tmp_path / "repaired")] == [m[0] for m in _messages(bag)]
+    assert read_bag_info(tmp_path / "repaired").topics["/status"].msg_type == "std_msgs/msg/Int32"

@@ -88,7 +88,11 @@ def repair_bag(bag_dir: str | os.PathLike, out_dir: str | os.PathLike, *, overwr
     out.parent.mkdir(parents=True, exist_ok=True)
     with scratch(out.parent, out.name) as staging:  # a killed repair's is removed by the next writer of `out`
         copier = _RepairCopier(info, reader, BagWriter(staging / out.name))
-        copier.copy()
+        try:
+            copier.copy()
+        except BaseException:
+            copier.writer.abandon()  # closes the file; the staging folder goes with it
+            raise
         remove_bag_files(replaceable_bag(out, overwrite))
         os.replace(staging / out.name, out)
     return RepairResult(reader.report, read_bag_info(out), copier.outcomes.pop(es.COMPLETE, 0), copier.messages,
@@ -246,16 +250,13 @@ class _RepairCopier:
                     encoding, text = SchemaEncoding.ROS2, message_definition(msg_type).encode()
                 except GscanError:  # not a ROS 2 Jazzy type
                     return None
-            try:
-                channel_id = self.writer.register_channel(
-                    channel.topic,
-                    msg_type,
-                    schema=(encoding, text),
-                    message_encoding=channel.message_encoding,
-                    metadata=channel.metadata,
-                )
-            except TypeError as exc:
-                raise DatasetFormatError(f"{path}: {exc}") from None
+            channel_id = self.writer.register_channel(
+                channel.topic,
+                msg_type,
+                schema=(encoding, text),
+                message_encoding=channel.message_encoding,
+                metadata=channel.metadata,
+            )
         self._channels[key] = channel_id
         return channel_id
 

@@ -286,9 +286,11 @@ class BagWriter:
         metadata: Mapping[str, str] | None = None,
     ) -> int:
         """Add `topic`'s channel (and its type's schema); `schema` = (encoding, text) and
-        `metadata` keep a copied channel's own (`bag repair`), else ours are generated."""
+        `metadata` keep a copied channel's own (`bag repair`), else ours are generated.
+        A channel of ours must have the interface table's type; a copied one keeps its
+        own (another node's topic of the same name, which readers leave aside)."""
         spec = TOPICS.get(topic)
-        if spec is not None and not spec.carries(msg_type):
+        if schema is None and spec is not None and not spec.carries(msg_type):
             raise TypeError(f"topic {topic} carries {spec.msg_type}, got a {msg_type}")
         schema_id = self._schemas.get(msg_type)
         if schema_id is None:

@@ -5,8 +5,10 @@ import pytest
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from gscan_ros.nodes.commander import GscanCommander, Outcome
-from gscan_ros.nodes.common import EVENT_QOS
+from gscan_ros import episode_status as es
+from gscan_ros.language import get_parser
+from gscan_ros.nodes.commander import GscanCommander, Outcome, _episode_reports
+from gscan_ros.nodes.common import EVENT_QOS, command_refusal
 from gscan_ros.world.types import Action
 
 from ros_helpers import in_process_stack
@@ -133,3 +135,20 @@ def test_the_commander_needs_no_node_names(probe, commander, checkpoint):
     assert (result.outcome, result.actions, result.episode_id) == (Outcome.SUCCEEDED, [WALK, EOS], "/brain/1")
     refused = commander.run_episode("fly to the moon", timeout=TIMEOUT)
     assert (refused.outcome, refused.episode_id) == (Outcome.REJECTED, "/ears/1")
+
+
+def test_another_clients_refused_command_is_not_taken_for_ones_own():
+    """Between the graph of a client's command and its episode's ACTIVE report, the parser
+    may refuse another client's command: the client still gets its own episode."""
+    graph = get_parser("semantic").parse("walk to a circle")
+    other = es.EpisodeStatus("/parser_node/1", 11, es.REJECTED, f"{command_refusal('jump')}: not a gSCAN command")
+    active = es.EpisodeStatus("/policy_node/1", 12, es.ACTIVE, "walk to a circle")
+    done = es.EpisodeStatus("/policy_node/1", 12, es.COMPLETE, "'walk to a circle': done after 2 actions")
+    reports = [(11, other), (12, active), (13, done)]
+    assert _episode_reports(reports, 5, "walk to a circle", (10, graph)) == ((12, active), (13, done))
+    # The policy's refusal of the graph (no ACTIVE before it) is the command's outcome.
+    refused = es.EpisodeStatus("/policy_node/1", 12, es.REJECTED, "bad command graph: no module for 'circle'")
+    assert _episode_reports([(11, other), (12, refused)], 5, "walk to a circle", (10, graph)) == (None, (12, refused))
+    # The parser's refusal of the command itself.
+    own = es.EpisodeStatus("/parser_node/2", 11, es.REJECTED, f"{command_refusal('fly')}: not a gSCAN command")
+    assert _episode_reports([(11, own)], 5, "fly", None) == (None, (11, own))

@@ -181,7 +181,7 @@ def test_bad_graphs_are_reported_and_the_node_stays_idle(probe, data):
     node.on_graph(text_to_cdr(data), source_info())
     node.on_observation(observation(), source_info())
     assert policy.seen == []
-    probe.spin_until(lambda: any("rejected command graph" in s.data for s in status), what="a rejection")
+    probe.spin_until(lambda: any("bad command graph" in s.data for s in status), what="a rejection")
 
 
 def test_an_observation_of_another_grid_size_is_reported_and_not_acted_on(probe):
@@ -292,7 +292,7 @@ def test_a_graph_with_a_huge_arity_is_reported_and_the_node_keeps_following_comm
     bad = json.loads(cdr_to_text(graph()))
     bad["nodes"][-1]["arity"] = 50_000_000
     node.on_graph(text_to_cdr(json.dumps(bad)), source_info())
-    probe.spin_until(lambda: any("rejected command graph" in s.data and "arity is 50000000" in s.data
+    probe.spin_until(lambda: any("bad command graph" in s.data and "arity is 50000000" in s.data
                                  for s in status), what="the rejection")
     node.on_observation(observation(), source_info())
     node.on_graph(graph(), source_info())

@@ -41,14 +41,15 @@ from gscan_ros.nodes.common import (
     ACTION,
     COMMAND,
     COMMAND_GRAPH,
+    COMMAND_REFUSAL,
     EPISODE_STATUS,
     OBSERVATION,
     RESET_WORLD,
     STATUS,
     VIEWER_LOG_QOS,
     attention_topic,
+    command_refusal,
     qos_profile,
-    quote,
 )
 from gscan_ros.world.types import Action
 from msg_adapters import cdr_to_action, cdr_to_episode_status, cdr_to_graph, cdr_to_text, text_to_cdr
@@ -367,7 +368,7 @@ def _episode_reports(reports: list[tuple[int, es.EpisodeStatus]], sent_ns: int, 
     be None. The parser's refusal names the command; otherwise the episode is the first one
     started after its graph was published whose ACTIVE text is the graph's command, or the
     policy's refusal of that graph (a REJECTED report of an episode that never started)."""
-    refused = f"rejected command {quote(command)}"
+    refused = command_refusal(command)
     started: set[str] = set()
     episode = None
     for t_ns, report in reports:
@@ -380,7 +381,8 @@ def _episode_reports(reports: list[tuple[int, es.EpisodeStatus]], sent_ns: int, 
                 started.add(report.episode_id)
             elif report.outcome == es.ACTIVE and report.text == graph[1].command:
                 episode = (t_ns, report)
-            elif report.outcome == es.REJECTED and report.episode_id not in started:
+            elif (report.outcome == es.REJECTED and report.episode_id not in started
+                  and not report.text.startswith(COMMAND_REFUSAL)):  # not the parser's of another command
                 return None, (t_ns, report)
             started.add(report.episode_id)
         elif report.episode_id == episode[1].episode_id and report.ended:

@@ -121,6 +121,16 @@ def validated(check: Callable[[dict[str, object]], None]) -> Callable[[list], Se
     return callback
 
 
+# How the parser's REJECTED report of a command begins: a client tells the parser's
+# refusal of its own command from that of another client's by it.
+COMMAND_REFUSAL = "rejected command"
+
+
+def command_refusal(command: str) -> str:
+    """The start of the parser's REJECTED report of `command`."""
+    return f"{COMMAND_REFUSAL} {quote(command)}"
+
+
 def quote(value: object) -> str:
     """repr() of a rejected input, shortened so a 10 kB command gives a one-line status;
     only the start of a long text is looked at, so a 50 MB one costs no more."""

@@ -37,6 +37,7 @@ from gscan_ros.nodes.common import (
     COMMAND_GRAPH,
     EPISODE_STATUS,
     StatusReporter,
+    command_refusal,
     describe,
     guarded,
     qos_profile,
@@ -111,7 +112,7 @@ class ParserNode(Node):
             canonical = canonicalize(text)
             graph = self._parser.parse(text)
         except GscanError as exc:
-            line = f"rejected command {quote(_shown(data))}: {exc}"
+            line = f"{command_refusal(_shown(data))}: {exc}"
             self.status.reject(line)
             self._rejected += 1
             self._episode_pub.publish(episode_status_to_cdr(EpisodeStatus(

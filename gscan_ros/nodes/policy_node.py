@@ -197,7 +197,7 @@ class PolicyNode(Node):
         try:
             graph = cdr_to_graph(data)
         except GscanError as exc:
-            self._refuse(f"rejected command graph: {exc}")
+            self._refuse(f"bad command graph: {exc}")
             return
         if published_ns < self._started_ns or published_ns < self._reset_ns:
             before = "this node started" if published_ns < self._started_ns else "the world was reset"
@@ -210,7 +210,7 @@ class PolicyNode(Node):
             self._check_grid(self._observation)
             self._policy.reset(graph)
         except GscanError as exc:
-            self._refuse(f"rejected command graph: {exc}")
+            self._refuse(f"bad command graph: {exc}")
             return
         self._graph, self._graph_ns, self._steps = graph, published_ns, 0
         self._step_cap = self.get_parameter("max_steps").value

@@ -8,6 +8,7 @@ import pytest
 import rclpy
 import yaml
 from actionlib_msgs.msg import GoalStatus
+from mcap.reader import make_reader
 from std_msgs.msg import String
 
 from gscan_ros import episode_status as es
@@ -285,6 +286,24 @@ def test_a_new_bag_dir_mid_episode_ends_it_in_the_old_bag_and_leaves_both_bags_w
     [second], second_report = read(tmp_path / "second", include_incomplete=True)
     assert (second.outcome, second.episode.meta["episode_id"]) == (es.COMPLETE, "/policy_node/2")
     assert second_report.complete and read_bag_info(tmp_path / "second").episodes == 1
+
+
+def test_a_new_bag_starts_with_the_current_state_received_at_the_switch(recorder, tmp_path):
+    """The latched samples are written into the new bag as a subscriber joining then gets
+    them: received at the switch, in publish order, not at the times they first came."""
+    feed = Feed(recorder)
+    feed.now -= 600 * 10**9  # the world's state was published ten minutes ago
+    feed.joined()
+    switched = time.time_ns()
+    [result] = recorder.set_parameters(parameters(bag_dir=str(tmp_path / "second")))
+    assert result.successful
+    recorder.destroy_node()
+    with open(next((tmp_path / "second").glob("*.mcap")), "rb") as f:
+        messages = [(c.topic, m.log_time, m.publish_time) for _, c, m in make_reader(f).iter_messages()]
+    assert {topic for topic, _, _ in messages} == {"/world_reset", "/situation", "/observation", "/command_graph"}
+    assert all(log >= switched for _, log, _ in messages)
+    assert [publish for _, _, publish in messages] == sorted(publish for _, _, publish in messages)
+    assert read_bag_info(tmp_path / "second").start_ns >= switched
 
 
 def test_the_bag_being_recorded_is_refused_as_a_new_bag_dir(recorder, tmp_path):

@@ -103,16 +103,24 @@ class EpisodeRecorderNode(Node):
     @guarded
     def _apply_parameters(self, parameters: list) -> None:
         names = {p.name for p in parameters}
+        if "include_images" in names:
+            self._record_images(self.get_parameter("include_images").value)
         if self._next_writer is not None:
             old, self._writer, self._next_writer = self._writer, self._next_writer, None
             self._stop_running(old, f"the recording moved to {self._writer.bag_dir}")
             old.close()
-            for endpoint, data, info in list(self._latched.values()):
-                self._write(endpoint, data, info)
+            self._write_latched()
             self.status.info(f"closed {old.bag_dir} ({old.episodes_written} episodes); recording to "
                              f"{self._writer.bag_dir}")
-        if "include_images" in names:
-            self._record_images(self.get_parameter("include_images").value)
+
+    def _write_latched(self) -> None:
+        """Start a new bag with the current state as a subscriber joining now gets it:
+        received now, in the order it was published (images only when recorded)."""
+        now = time.time_ns()
+        latched = sorted(self._latched.values(), key=lambda sample: sample[2]["source_timestamp"])
+        for endpoint, data, info in latched:
+            if endpoint.name in self._recording:
+                self._write(endpoint, data, {**info, "received_timestamp": now})
 
     def _record_images(self, on: bool) -> None:
         if on and interface.WORLD_IMAGE.name not in self._recording:

@@ -245,6 +245,7 @@ BAD_MESSAGES = {
     "action": (text_to_cdr("jump"), "unknown action 'jump'"),
     "situation": (text_to_cdr("{not json"), "situation is not JSON"),
     "episode": (text_to_cdr("{not json"), "/episode record is not JSON"),
+    "observation": (text_to_cdr("jump"), "malformed sensor_msgs/msg/Image"),
     "episode_status": (msg_to_cdr(GoalStatus(goal_id=GoalID(stamp=time_msg(0), id="?"), status=9, text="")),
                        "episode status 9 is not one the policy sends"),
 }

@@ -8,7 +8,15 @@ import pytest
 from mcap.reader import make_reader
 
 from gscan_ros import episode_status as es
-from gscan_ros.data.bag import LIVE_SPLIT, BagEpisodeReader, BagWriter, iter_bag_episodes, read_bag_info, write_bag
+from gscan_ros.data.bag import (
+    LIVE_SPLIT,
+    BagEpisodeReader,
+    BagWriter,
+    iter_bag_episodes,
+    read_bag_info,
+    repair_bag,
+    write_bag,
+)
 from gscan_ros.data.bag_cache import load_episode_cache
 from gscan_ros.data.episode import Episode
 from gscan_ros.language import get_parser
@@ -266,8 +274,8 @@ def test_another_nodes_topic_of_a_stack_topics_name_is_context(tmp_path):
 @pytest.mark.parametrize("topic", sorted(BAD_MESSAGES))
 def test_a_bad_message_costs_its_episode_not_the_bag(tmp_path, topic):
     """A bad `/action` token, a `/situation` or `/episode` that is not JSON, an `/episode_status`
-    code the policy never sends: the episode it belongs to is dropped and the report names
-    the reason and the message; the episodes around it read."""
+    code the policy never sends, an `/observation` that is no image: the episode it belongs
+    to is dropped and the report names the reason and the message; the episodes around it read."""
     bag = tmp_path / "bad"
     expected, bad_ns = recording_with_a_bad_message(bag, topic)
     reader = iter_bag_episodes(bag)
@@ -279,7 +287,7 @@ def test_a_bad_message_costs_its_episode_not_the_bag(tmp_path, topic):
     assert not report.complete and f"a bad /{topic} message" in report.summary()
 
 
-@pytest.mark.parametrize("topic", ["action", "episode_status"])
+@pytest.mark.parametrize("topic", ["action", "episode_status", "observation"])
 def test_a_stray_bad_message_between_episodes_is_lost_alone(tmp_path, topic):
     bag = tmp_path / "stray"
     expected, _ = recording_with_a_bad_message(bag, topic, stray=True)
@@ -288,6 +296,10 @@ def test_a_stray_bad_message_between_episodes_is_lost_alone(tmp_path, topic):
     report = reader.report
     assert report.bad_messages == 1 and report.incomplete_episodes == 0
     assert report.lost_episodes == 0 and report.lost_messages == 1 and not report.complete
+    # Training's read agrees: a state it could not read is the world's, replayed.
+    records = list(BagEpisodeReader(bag, decode_states=True).records())
+    assert [r.episode for r in records] == expected
+    assert all(np.array_equal(r.states, np.stack(r.episode.states())) for r in records)
 
 
 def test_an_episode_after_a_reset_whose_new_situation_was_missed_is_dropped(tmp_path):
@@ -370,9 +382,10 @@ def test_an_all_topics_recording_stopped_mid_episode_ends_it_preempted(tmp_path)
     assert reader.report.drop_reasons == {"no end report (the recording stopped first)": 1}
 
 
-def test_a_bad_observation_costs_its_episode_when_states_are_decoded(tmp_path):
-    """Observations are decoded only for training (`decode_states`); one cut short there
-    drops its episode with the reason, like any bad message, not the whole read."""
+def test_a_bad_observation_costs_its_episode_whether_states_are_decoded_or_not(tmp_path):
+    """One rule for every reader: an observation cut short drops its episode with the
+    reason, like any bad message, in the training cache's read (`decode_states`), in
+    `verify`'s and in `bag repair`, whose copy then holds nothing bad."""
     rng = random.Random(6)
     stack = LiveStack(make_episodes(1, seed=6)[0].situation)
     stack.state()
@@ -390,9 +403,14 @@ def test_a_bad_observation_costs_its_episode_when_states_are_decoded(tmp_path):
     stack.messages[bad] = (topic, msg_type, data[:-5], publish_ns, late_ns)
     with BagWriter(tmp_path / "bag") as writer:
         stack.record(writer, recorder=False)
-    assert len(list(iter_bag_episodes(tmp_path / "bag"))) == 3  # not decoded, it costs nothing
-    reader = BagEpisodeReader(tmp_path / "bag", decode_states=True)
-    records = list(reader.records())
-    assert [r.episode for r in records] == expected
+    for decode_states in (False, True):
+        reader = BagEpisodeReader(tmp_path / "bag", decode_states=decode_states)
+        records = list(reader.records())
+        assert [r.episode for r in records] == expected
+        assert reader.report.drop_reasons == {"a bad /observation message": 1} and not reader.report.complete
+        assert reader.report.bad_messages == 1 and reader.report.first_bad_message.startswith("/observation")
     assert all(len(r.states) == len(r.episode.actions) + 1 for r in records)
-    assert reader.report.drop_reasons == {"a bad /observation message": 1} and not reader.report.complete
+    result = repair_bag(tmp_path / "bag", tmp_path / "repaired")
+    assert result.episodes == 2
+    repaired = BagEpisodeReader(tmp_path / "repaired", decode_states=True)
+    assert [r.episode for r in repaired.records()] == expected and repaired.report.complete

@@ -299,18 +299,31 @@ def test_format_1_aborted_episode_reads_as_preempted(tmp_path, episodes):
         (episodes[0], "complete"), (episodes[1], "preempted"), (episodes[2], "complete")]
 
 
-def test_format_1_observation_count_mismatch_is_a_format_error(tmp_path, episodes):
-    with legacy_bag(tmp_path / "bad") as writer:
-        write_legacy_episode(writer, episodes[0], 0, observations=False)
-    with pytest.raises(DatasetFormatError, match="bad_0.mcap: episode 0: 0 observations"):
-        list(iter_bag_episodes(tmp_path / "bad"))
-
-
-def test_format_1_unknown_action_token_names_file_and_episode(tmp_path, episodes):
-    with legacy_bag(tmp_path / "tok") as writer:
+def test_format_1_bad_episodes_cost_themselves_not_the_bag(tmp_path, episodes):
+    """Format 1 follows the rule of format 2: an episode with an unknown action token, an
+    observation that is no image, a graph that is no graph or too few observations is
+    dropped with its reason (the first bad message named with its episode); the episodes
+    around it read."""
+    cases = {
+        "a bad /action message": dict(tokens=["jump"]),
+        "its /observation count does not match its actions": dict(observations=False),
+    }
+    for reason, damage in cases.items():
+        bag = tmp_path / reason.split()[-2].strip("/")
+        with legacy_bag(bag) as writer:
+            write_legacy_episode(writer, episodes[0], 0)
+            write_legacy_episode(writer, episodes[1], 7, **damage)
+            write_legacy_episode(writer, episodes[2], 2)
+        reader = iter_bag_episodes(bag)
+        assert list(reader) == [episodes[0], episodes[2]]
+        assert reader.report.drop_reasons == {reason: 1} and not reader.report.complete
+    assert reader.report.bad_messages == 0
+    bag = tmp_path / "tok"
+    with legacy_bag(bag) as writer:
         write_legacy_episode(writer, episodes[0], 7, tokens=["jump"])
-    with pytest.raises(DatasetFormatError, match=r"tok_0.mcap: episode 7: unknown action 'jump'"):
-        list(iter_bag_episodes(tmp_path / "tok"))
+    reader = iter_bag_episodes(bag)
+    assert list(reader) == [] and reader.report.bad_messages == 1
+    assert reader.report.first_bad_message.startswith("/action of episode 7: unknown action 'jump'")
 
 
 def test_bags_are_written_read_and_repaired_without_ros(tmp_path):

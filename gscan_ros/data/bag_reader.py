@@ -14,7 +14,7 @@ import logging
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Iterator
+from typing import Callable, Iterable, Iterator
 
 import numpy as np
 
@@ -69,6 +69,7 @@ class _OpenEpisode:
     observation_count: int = 0
     graph_json: str | None = None
     outcome: str = es.COMPLETE  # header "outcome" (format 1 knew "aborted" only)
+    damage: str | None = None  # a bad message of its own: it is dropped for this reason
 
 
 class BagEpisodeReader(Iterator[Episode]):
@@ -126,7 +127,7 @@ class BagEpisodeReader(Iterator[Episode]):
     # -- format 2: the live topics --------------------------------------------------------
     def _live_records(self) -> Iterator[RecordedEpisode]:
         graphs = GraphCache()
-        decode = live_decoder(graphs)
+        decode = live_decoder(graphs, self.observation)
         assemblers: dict[str, EpisodeAssembler] = {}  # one per stack namespace
         lost = False
         window = 0 if self.info.publish_ordered else REORDER_WINDOW
@@ -153,10 +154,9 @@ class BagEpisodeReader(Iterator[Episode]):
                 continue  # another node's topics that share a stack topic's name and type
             for _ in range(assembler.rejected):
                 self.report.count_outcome(es.REJECTED)
-            self.report.incomplete_episodes += sum(assembler.dropped.values())
             self.report.discarded_messages += assembler.dropped_messages
             for reason, count in assembler.dropped.items():
-                self.report.drop_reasons[reason] = self.report.drop_reasons.get(reason, 0) + count
+                self.report.count_drop(reason, count)
             self.report.bad_messages += assembler.bad_messages
             self.report.first_bad_message = self.report.first_bad_message or assembler.first_bad
             self.dropped_keys.update((namespace, *key) for key in assembler.dropped_keys)
@@ -192,11 +192,7 @@ class BagEpisodeReader(Iterator[Episode]):
         states = None
         if self.decode_states:
             # A recorder that lagged may lack some states: they are the world's, so replay them.
-            try:
-                observed = [self._decode_observation(d) for d in done.observations or ()]
-            except GscanError:
-                raise _Unusable("a bad /observation message") from None
-            states = np.stack(observed or episode.states())
+            states = np.stack(done.observations or episode.states())
         return RecordedEpisode(episode, done.header, states, done.graph_json, done.outcome)
 
     def _live_messages(self) -> Iterator[Message | object]:
@@ -226,13 +222,13 @@ class BagEpisodeReader(Iterator[Episode]):
         current: _OpenEpisode | None = None
         for item in self._messages():
             if item is LOSS:  # data lost here: the open episode cannot be completed
-                self._drop(current)
+                self._drop(current, "cut by lost data")
                 current = None
                 continue
             path, topic, data = item
             self.report.messages_read += 1
             if topic == COMMAND.name:
-                self._drop(current)
+                self._drop(current, "a new episode started before its <eos>")
                 current = self._start(path, data)
                 continue
             if current is None:  # between episodes: only episode topics count as lost data
@@ -240,14 +236,22 @@ class BagEpisodeReader(Iterator[Episode]):
                 continue
             current.messages += 1
             if topic == OBSERVATION.name:
+                try:  # read whether kept or not, so that `verify` and the cache drop the same episodes
+                    observation = self.observation(data)
+                except GscanError as exc:
+                    self._bad(current, topic, str(exc))
+                    continue
                 current.observation_count += 1
                 if self.decode_states and current.selected:
-                    current.observations.append(self._decode_observation(data))
+                    current.observations.append(observation)
             elif topic == ACTION.name:
                 action = action_cache.get(data)
                 if action is None:
-                    action = self._decode_action(path, data, current)
-                    action_cache[bytes(data)] = action
+                    try:
+                        action = action_cache[bytes(data)] = cdr_to_action(data)
+                    except GscanError as exc:
+                        self._bad(current, topic, str(exc))
+                        continue
                 if action is not Action.EOS:
                     current.actions.append(action)
                     continue
@@ -255,25 +259,38 @@ class BagEpisodeReader(Iterator[Episode]):
                 if done.header is None:  # a command typed as plain text: no situation to follow it from
                     self._drop(done, "a /command with no episode header")
                     continue
-                if done.outcome != es.COMPLETE:
-                    self.report.count_outcome(done.outcome)
-                    if not self.include_incomplete:
-                        continue
-                else:
+                if done.damage is not None:
+                    self._drop(done)
+                    continue
+                wanted = done.selected and (done.outcome == es.COMPLETE or self.include_incomplete)
+                try:
+                    record = self._finish(path, done, graphs) if wanted else None
+                except _Unusable as exc:  # it costs the episode, not the bag
+                    self._drop(done, str(exc))
+                    continue
+                if done.outcome == es.COMPLETE:
                     self.report.episodes_read += 1
-                if done.selected:
-                    record = self._finish(path, done, graphs)
+                else:
+                    self.report.count_outcome(done.outcome)
+                if record is not None:
                     self.report.count_grid_size(record.episode.situation.grid_size)
                     yield record
             elif topic == COMMAND_GRAPH.name:
-                current.graph_json = cdr_to_text(data)
-        self._drop(current)
+                try:
+                    current.graph_json = cdr_to_text(data)
+                    graphs.parse(current.graph_json)
+                except GscanError as exc:
+                    self._bad(current, topic, str(exc))
+        self._drop(current, "no <eos> (the recording stopped first)")
 
     # -- episode assembly ---------------------------------------------------------------
     def _start(self, path: Path, data: bytes) -> _OpenEpisode:
-        text = cdr_to_text(data)
         try:
-            header = json.loads(text)
+            header = json.loads(cdr_to_text(data))
+        except GscanError as exc:  # no String: the episode it starts is lost with it
+            episode = _OpenEpisode(header=None, selected=False)
+            self._bad(episode, COMMAND.name, str(exc))
+            return episode
         except json.JSONDecodeError:
             header = None
         if not isinstance(header, dict) or "situation" not in header:
@@ -290,30 +307,30 @@ class BagEpisodeReader(Iterator[Episode]):
         return _OpenEpisode(header=header, selected=selected, outcome=outcome)
 
     def _drop(self, episode: _OpenEpisode | None, reason: str | None = None) -> None:
+        """`episode` (if any) cannot be read back: for its own bad message, else for `reason`."""
         if episode is not None:
-            self.report.incomplete_episodes += 1
+            self.report.count_drop(episode.damage or reason)
             self.report.discarded_messages += episode.messages
-            if reason is not None:
-                self.report.drop_reasons[reason] = self.report.drop_reasons.get(reason, 0) + 1
 
-    def _decode_action(self, path: Path, data: bytes, episode: _OpenEpisode) -> Action:
-        try:
-            return cdr_to_action(data)
-        except GscanError as exc:
+    def _bad(self, episode: _OpenEpisode, topic: str, detail: str) -> None:
+        """A message of `episode` that cannot be read: counted, and the episode is dropped at its end."""
+        self.report.bad_messages += 1
+        if self.report.first_bad_message is None:
             where = episode.header.get("episode_id") if episode.header else "?"
-            raise DatasetFormatError(f"{path}: episode {where}: {exc}") from None
+            self.report.first_bad_message = f"{topic} of episode {where}: {detail}"
+        episode.damage = episode.damage or f"a bad {topic} message"
 
     def _finish(self, path: Path, done: _OpenEpisode, graphs: GraphCache) -> RecordedEpisode:
-        if done.header is None:
-            raise AssertionError("unselected episodes are never finished")
+        """The episode `done` as read; `_Unusable` when what it holds does not make one."""
         where = f"{path}: episode {done.header.get('episode_id')}"
         # An aborted episode may lack the state its last action led to (the reset came first).
         complete_states = done.observation_count == len(done.actions) + 1
         if not complete_states and not (done.outcome != es.COMPLETE and done.observation_count == len(done.actions)):
-            raise DatasetFormatError(
-                f"{where}: {done.observation_count} observations for {len(done.actions) + 1} actions (with <eos>)"
-            )
-        episode = episode_from_header(done.header, done.actions, str(path))
+            raise _Unusable("its /observation count does not match its actions")
+        try:
+            episode = episode_from_header(done.header, done.actions, str(path))
+        except GscanError:
+            raise _Unusable("its header's situation is no gSCAN situation") from None
         graphs.attach(episode, done.graph_json, where)
         states = None
         if self.decode_states:
@@ -343,6 +360,14 @@ class BagEpisodeReader(Iterator[Episode]):
                     self._observation_type(scan, channel)
             yield scan.path, channel.topic, item[4]
 
+    def observation(self, data: bytes) -> np.ndarray:
+        """An `/observation` of this bag, decoded as its channel's type (a GscanError if it is
+        no observation): the one reading of observations for the reader, `verify`, the
+        training cache and `bag repair` (which reads the bag with a reader first)."""
+        if self._decode_observation is None:  # set when its channel is first seen, before its messages
+            raise DatasetFormatError(f"{self.info.path}: an /observation before its channel")
+        return self._decode_observation(data)
+
     def _observation_type(self, scan: McapScan, channel) -> None:
         """Decode observations as `channel`'s type: an Image, or an earlier bag's UInt8MultiArray."""
         msg_type = scan.msg_type(channel) or OBSERVATION.msg_type
@@ -353,11 +378,12 @@ class BagEpisodeReader(Iterator[Episode]):
                                      f"{self._decode_observation.msg_type} and {msg_type}")
 
 
-def live_decoder(graphs: GraphCache) -> StackDecoder:
+def live_decoder(graphs: GraphCache, decode_observation: Callable[[bytes], np.ndarray]) -> StackDecoder:
     """The `StackDecoder` of format-2 bags (the reader's and `bag repair`'s): msg_adapters'
-    conversions, graphs parsed once by `graphs`."""
+    conversions, graphs parsed once by `graphs`, observations read by `decode_observation`
+    (`BagEpisodeReader.observation`)."""
     return StackDecoder(decode_action=cdr_to_action, decode_status=cdr_to_episode_status,
-                        decode_text=cdr_to_text, check_graph=graphs.parse)
+                        decode_text=cdr_to_text, check_graph=graphs.parse, decode_observation=decode_observation)
 
 
 def iter_bag_episodes(

@@ -107,7 +107,7 @@ class _RepairCopier:
         self.writer = writer
         self.stacks = reader.stacks  # format 2: the stack topics, as the reader found them
         self.dropped_keys = reader.dropped_keys  # format 2: the episodes it could not assemble
-        self.decode = live_decoder(GraphCache())
+        self.decode = live_decoder(GraphCache(), reader.observation)
         self.source_summary = reader.report.summary()
         # Pieces of episodes matter only in episode bags (any other bag: copy everything).
         self.episode_bag = info.custom.get("gscan_ros.format", EPISODE_FORMAT) == EPISODE_FORMAT

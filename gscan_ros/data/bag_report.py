@@ -24,7 +24,7 @@ class BagReadReport:
     # demonstrations, skipped unless asked for; whatever the split filter.
     outcomes: dict[str, int] = field(default_factory=dict)
     incomplete_episodes: int = 0  # started, never properly ended (end of data, damage, a missing message)
-    drop_reasons: dict[str, int] = field(default_factory=dict)  # why, for format-2 bags (reason -> episodes)
+    drop_reasons: dict[str, int] = field(default_factory=dict)  # why, where known (reason -> episodes)
     bad_messages: int = 0  # stack messages that could not be read (each lost; its episode dropped)
     first_bad_message: str | None = None  # the first of them: topic, publish time, why
     grid_sizes: dict[int, int] = field(default_factory=dict)  # grid size -> episodes read (the selected ones)
@@ -83,6 +83,12 @@ class BagReadReport:
 
     def count_outcome(self, outcome: str) -> None:
         self.outcomes[outcome] = self.outcomes.get(outcome, 0) + 1
+
+    def count_drop(self, reason: str | None, episodes: int = 1) -> None:
+        """`episodes` more episodes that could not be read back, for `reason` when known."""
+        self.incomplete_episodes += episodes
+        if reason is not None:
+            self.drop_reasons[reason] = self.drop_reasons.get(reason, 0) + episodes
 
     def count_grid_size(self, grid_size: int) -> None:
         self.grid_sizes[grid_size] = self.grid_sizes.get(grid_size, 0) + 1

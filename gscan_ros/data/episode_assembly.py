@@ -132,21 +132,25 @@ def publication_order(items: Iterable[Message | object], window: int = REORDER_W
 
 class StackDecoder:
     """What a stack message holds, by topic: an Action, an EpisodeStatus, an `/episode`
-    record (a dict), a situation (a JSON object), a command's or a graph's text; other
-    topics pass undecoded. A message that cannot be read raises a GscanError: it is a bad
-    message. The one rule of the reader and of `bag repair`, so that a repaired bag holds
-    no message its reader would refuse.
+    record (a dict), a situation (a JSON object), a command's or a graph's text, an
+    observation (the grid array); other topics pass undecoded. A message that cannot be
+    read raises a GscanError: it is a bad message. The one rule of the reader (so of
+    `verify` and the training cache alike) and of `bag repair`, so that a repaired bag
+    holds no message its reader would refuse.
 
-    `decode_action`, `decode_status` and `decode_text` turn CDR bytes into an Action, an
-    EpisodeStatus and a String's text; `check_graph` raises for text that is no CommandGraph.
+    `decode_action`, `decode_status`, `decode_text` and `decode_observation` turn CDR bytes
+    into an Action, an EpisodeStatus, a String's text and a uint8[row, col, channel] grid;
+    `check_graph` raises for text that is no CommandGraph.
     """
 
     def __init__(self, *, decode_action: Callable[[bytes], Action], decode_status: Callable[[bytes], es.EpisodeStatus],
-                 decode_text: Callable[[bytes], str], check_graph: Callable[[str], Any]) -> None:
+                 decode_text: Callable[[bytes], str], check_graph: Callable[[str], Any],
+                 decode_observation: Callable[[bytes], Any]) -> None:
         self._action = decode_action
         self._status = decode_status
         self._text = decode_text
         self._check_graph = check_graph
+        self._observation = decode_observation
         self._actions: dict[bytes, Action] = {}  # the CDR bytes of the few action tokens
 
     def __call__(self, topic: str, data: bytes) -> Any:
@@ -157,6 +161,8 @@ class StackDecoder:
             return action
         if topic == "episode_status":
             return self._status(data)
+        if topic == "observation":
+            return self._observation(data)
         if topic not in ("command", "command_graph", "situation", "episode"):
             return data
         text = self._text(data)
@@ -197,7 +203,7 @@ class AssembledEpisode:
     header: dict
     actions: list[Action]
     graph_json: str | None
-    observations: list[bytes] | None  # one per state, or None when some were not recorded
+    observations: list | None  # one decoded state per state, or None when some were not recorded
     outcome: str
     messages: int  # the bag's stack messages since the previous episode ended (its prologue included)
     status: es.EpisodeStatus  # its end report (id and start stamp: where the bag holds it)
@@ -221,7 +227,7 @@ class _Open:
     record: dict | None
     record_lost: str | None  # why its `/episode` record may be missing (lost data, a bad record)
     damage: str | None = None  # a bad message of its own: it is dropped for this reason
-    observations: list[bytes] = field(default_factory=list)  # the state before each action, then the last
+    observations: list = field(default_factory=list)  # the state before each action, then the last (decoded)
     aligned: bool = True  # False: some action lacks its one reply, so `observations` cannot be trusted
     actions: list[Action] = field(default_factory=list)
     eos: bool = False
@@ -233,7 +239,7 @@ class _Open:
         self.actions.append(action)
         self.awaiting_reply = True
 
-    def observe(self, observation: bytes) -> None:
+    def observe(self, observation: Any) -> None:
         """Take a state of the world by the lock-step protocol (docs/ros.md)."""
         if not self.actions:  # the policy acts first on the newest state (maybe a reply that came after ACTIVE)
             self.observations[:] = [observation]
@@ -270,7 +276,7 @@ class EpisodeAssembler:
         self._since_situation: list[Action] = []  # world actions published after the newest situation
         self._graph: str | _Unreadable | None = None
         self._command: str | _Unreadable | None = None
-        self._observation: bytes | None = None
+        self._observation: Any = None  # the newest state, decoded
         self._records: dict[str, dict] = {}
         self._open: _Open | None = None
         self.dropped: dict[str, int] = {}
@@ -372,6 +378,8 @@ class EpisodeAssembler:
             self.first_bad = f"/{message.topic} at {message.publish_ns} ns: {detail}"
         reason = f"a bad /{message.topic} message"
         topic, episode = message.topic, self._open
+        if topic == "observation":
+            self._observation = None  # the world's state is not known from it (the world replays it)
         if topic == "situation":
             self._situation, self._since_situation = _Unreadable(reason), []
         elif topic == "command_graph":
@@ -404,7 +412,7 @@ class EpisodeAssembler:
                 record=self._records.pop(report.episode_id, None),
                 record_lost=self._record_lost,
                 damage=prologue[0].reason if prologue else None,
-                observations=[self._observation] if self._keep_observations and self._observation else [],
+                observations=[self._observation] if self._keep_observations and self._observation is not None else [],
             )
             self._record_lost = None
             return None

@@ -184,6 +184,15 @@ def test_batched_step0_readings_equal_the_single_episode_trace(policy):
         np.testing.assert_allclose(reading.ordering, step.size_ordering, atol=1e-6)
 
 
+def test_step0_readings_refuse_an_episode_on_another_grid(policy):
+    """The model reads one grid size: an episode on another is named, not an index error."""
+    from gscan_ros.errors import GscanError
+
+    episodes = [sample_episode(3, command="walk to a circle"), sample_episode(4, 8, "walk to a circle")]
+    with pytest.raises(GscanError, match=r"is on a 8x8 grid; the model was trained on 6x6"):
+        step0_readings(policy, episodes)
+
+
 # ------------------------------------------------------------------------------- figures
 @pytest.mark.parametrize("command, panels", [
     ("walk to a yellow small circle while spinning",

@@ -114,6 +114,8 @@ def test_a_damaged_last_checkpoint_resumes_from_the_one_before(dataset, tmp_path
     assert read_checkpoint(damaged / "last.prev.pt")["step"] == 2
     data = (damaged / "last.pt").read_bytes()
     (damaged / "last.pt").write_bytes(data[: len(data) // 2])
+    lines = (damaged / "metrics.jsonl").read_text().splitlines()  # the crash came before the end record
+    (damaged / "metrics.jsonl").write_text("\n".join(line for line in lines if '"end"' not in line) + "\n")
     assert run_train(dataset, damaged, "--set", "max_updates=4", "--set", "seed=5", "--resume") == 0
     assert any("last.prev.pt, the checkpoint before it" in r.getMessage() for r in caplog.records)
     weights = [read_checkpoint(run / "last.pt")["state_dict"] for run in (straight, damaged)]
@@ -204,3 +206,59 @@ def test_a_run_stopped_after_its_checkpoint_logs_each_update_once(dataset, tmp_p
         return [(e["step"], e["loss"]) for e in map(json.loads, (run / "metrics.jsonl").read_text().splitlines())
                 if e["event"] == "train"]
     assert trained(stopped) == trained(straight)
+
+
+def test_a_finished_run_is_not_resumed_and_one_cut_before_its_end_record_finishes_as_it_was(dataset, tmp_path,
+                                                                                           capsys):
+    """`--resume` of a run that finished says so and changes nothing; a run stopped after its
+    last checkpoint and before its end record only writes model.pt and the end, without
+    validating the last update again."""
+    torch.set_num_threads(1)
+    run = tmp_path / "run"
+    assert run_train(dataset, run, "--set", "max_updates=2") == 0
+    files = {p.name: p.read_bytes() for p in run.iterdir()}
+    capsys.readouterr()
+    assert run_train(dataset, run, "--set", "max_updates=2", "--resume") == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "finished at update 2 (max_updates 2); raise it to train on" in err[0]
+    assert {p.name: p.read_bytes() for p in run.iterdir()} == files
+    assert run_train(dataset, run, "--set", "max_updates=1", "--resume") == 1  # last.pt is past the budget
+    lines = (run / "metrics.jsonl").read_text().splitlines()
+    (run / "metrics.jsonl").write_text("\n".join(line for line in lines if '"end"' not in line) + "\n")
+    (run / "model.pt").unlink()
+    assert run_train(dataset, run, "--set", "max_updates=2", "--resume") == 0
+    events = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert [e["step"] for e in events if e["event"] == "validation"] == [2]
+    assert [e["event"] for e in events[-2:]] == ["start", "end"] and (run / "model.pt").is_file()
+
+
+def test_a_resume_on_other_data_is_refused(dataset, tmp_path, capsys):
+    """The batch cursor and the best dev score mean something only on the run's own data."""
+    import shutil
+
+    run, other = tmp_path / "run", tmp_path / "other_data"
+    assert run_train(dataset, run, "--set", "max_updates=1") == 0
+    shutil.copytree(dataset, other)
+    capsys.readouterr()
+    assert run_train(other, run, "--set", "max_updates=2", "--resume") == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"trained on {dataset}, not {other}" in err[0]
+    assert run_train(dataset, run, "--set", "max_updates=2", "--resume") == 0
+
+
+def test_without_best_pt_a_resume_makes_the_next_validation_the_best(dataset, tmp_path):
+    """best.pt lost after a resume point: the next validation's weights become best.pt, and
+    the score reported as best is theirs, not the lost one's."""
+    from gscan_ros.model.checkpoint import save_checkpoint
+
+    torch.set_num_threads(1)
+    run = tmp_path / "run"
+    assert run_train(dataset, run, "--set", "max_updates=2") == 0
+    last = dict(read_checkpoint(run / "last.pt"))
+    save_checkpoint(run / "last.pt", {**last, "best_step": 1, "best_dev_exact_match": 100.0})  # best.pt was older
+    (run / "best.pt").unlink()
+    assert run_train(dataset, run, "--set", "max_updates=3", "--resume") == 0
+    events = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    last = [e for e in events if e["event"] == "validation"][-1]
+    assert last["step"] == 3 and events[-1]["best_dev_exact_match"] == last["dev_exact_match"]
+    assert read_checkpoint(run / "model.pt")["step"] == 3

@@ -32,6 +32,13 @@ def test_bad_schedule_settings_are_named(override):
         TrainConfig.load(None, [override])
 
 
+def test_a_decay_that_would_end_within_the_warm_up_is_refused():
+    """The factor would drop from 1 to min_lr_ratio in one update at the warm-up's end."""
+    with pytest.raises(ConfigError, match=r"decay_updates \(50\) must come after warmup_updates \(100\)"):
+        TrainConfig.load(None, ["warmup_updates=100", "decay_updates=50", "lr_decay=cosine"])
+    TrainConfig.load(None, ["warmup_updates=100", "decay_updates=50", "lr_decay=none"])  # no decay: nothing to end
+
+
 @pytest.fixture
 def dataset(tiny_dataset):
     return tiny_dataset

@@ -142,9 +142,7 @@ def _setup(args: argparse.Namespace, policy):
 
     require_attention(policy)
     command, situation, actions = _episode(args, policy.grid_size)
-    if situation.grid_size != policy.grid_size:
-        g, want = situation.grid_size, policy.grid_size
-        raise GscanError(f"the situation is a {g}x{g} grid; the model was trained on {want}x{want}")
+    policy.require_grid(situation.grid_size, "the situation")
     return command, with_referent(situation, command), actions
 
 

@@ -19,7 +19,7 @@ from pathlib import Path
 from gscan_ros.errors import GscanError
 from gscan_ros.experiments.locks import FileLock
 from gscan_ros.experiments.plan import DataRecipe, RunSpec
-from gscan_ros.training.metrics_log import read_events
+from gscan_ros.training.metrics_log import finished_end, read_events
 from gscan_ros.user_files import file_sha256, read_json, read_yaml
 
 STATES = ("done", "evaluate", "running", "resume", "new", "stale")
@@ -35,19 +35,6 @@ PROMOTING = ".promoting"
 
 class ExperimentError(GscanError):
     """A run or dataset of a plan that could not be brought to completion."""
-
-
-def finished_end(events: list[dict], cfg) -> dict | None:
-    """The last "end" event when it closed the training (budget reached, target reached, or
-    out of its time budget) and no later start reopened it; else None."""
-    for event in reversed(events):
-        kind = event.get("event")
-        if kind == "start":
-            return None
-        if kind == "end":
-            out_of_time = cfg.max_minutes and event.get("elapsed_s", 0) >= cfg.max_minutes * 60
-            return event if event["step"] >= cfg.max_updates or event.get("reached_target") or out_of_time else None
-    return None
 
 
 def trained_updates(events: list[dict]) -> int:

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from gscan_ros.errors import CheckpointError, GraphError
+from gscan_ros.errors import CheckpointError, GraphError, GscanError
 from gscan_ros.language.graph import CommandGraph
 from gscan_ros.language.lexicon import Lexicon
 from gscan_ros.model.checkpoint import checkpoint_lexicon, read_checkpoint, restore_model
@@ -96,6 +96,13 @@ class Policy:
     @property
     def grid_size(self) -> int:
         return self.model.cfg.grid_size
+
+    def require_grid(self, grid_size: int, what: str) -> None:
+        """Refuse `what` (an episode, a situation) on a `grid_size` grid other than the
+        model's: a model reads one grid size."""
+        if grid_size != self.grid_size:
+            raise GscanError(f"{what} is on a {grid_size}x{grid_size} grid; the model was trained on "
+                             f"{self.grid_size}x{self.grid_size}")
 
     @property
     def observation_shape(self) -> tuple[int, int, int]:

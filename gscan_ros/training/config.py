@@ -92,8 +92,9 @@ class TrainConfig:
     candidates (seeds `seed`, `seed` + 1000, `seed` + 2000, ...), train each for
     `screen_updates` updates, and continue the first whose noun-phrase maps peak on the
     target at least half as often as chance (else the one that peaks there most often). The chosen
-    candidate trains on exactly as a run with its seed would; the clock counts every
-    candidate. 0 or 1 = no screening; needs a model that passes attention maps."""
+    candidate trains on exactly as a run with its seed would, validated on the dev subset of
+    the run's own `seed`; the clock counts every candidate. 0 or 1 = no screening; needs a
+    model that passes attention maps."""
     screen_updates: int = 1000
     """Updates each screened candidate trains before its maps are read."""
     train_split: str = "train"
@@ -155,6 +156,9 @@ class TrainConfig:
         if int(self.seed) < 0 or last_seed > MAX_SEED:
             raise ConfigError(f"seed must be in [0, {MAX_SEED}] (numpy's range) for every screen candidate "
                               f"(seed + {SCREEN_SEED_STRIDE} k), got {quoted(self.seed)}")
+        if self.lr_decay != "none" and 0 < int(self.decay_updates) <= int(self.warmup_updates):
+            raise ConfigError(f"decay_updates ({self.decay_updates}) must come after warmup_updates "
+                              f"({self.warmup_updates}): the decay would start at its end")
         if self.min_lr_ratio > 1:
             raise ConfigError(f"min_lr_ratio must be in [0, 1], got {quoted(self.min_lr_ratio)}")
         if self.target_dev_exact_match > 100:

@@ -21,7 +21,7 @@ from tqdm import tqdm
 
 from gscan_ros.data.episode import Episode
 from gscan_ros.data.splits import SPLIT_LETTERS
-from gscan_ros.errors import GscanError, InvalidActionError
+from gscan_ros.errors import InvalidActionError
 from gscan_ros.model.policy import MAX_STEPS, Policy
 from gscan_ros.training.distributed import Ranks, shard_of
 from gscan_ros.training.failures import FAILURE_KINDS, classify_failure
@@ -176,11 +176,8 @@ def evaluate_episodes(model_or_policy, episodes: Sequence[Episode], batch_size: 
     gets all predictions back in order, bit for bit the single-process result; the other
     ranks get None."""
     policy = model_or_policy if isinstance(model_or_policy, Policy) else Policy(model_or_policy, parser)
-    other = next((ep for ep in episodes if ep.situation.grid_size != policy.grid_size), None)
-    if other is not None:
-        g = other.situation.grid_size
-        raise GscanError(f"the model was trained on a {policy.grid_size}x{policy.grid_size} grid, "
-                         f"episode {other.example_id} of split {other.split!r} is on {g}x{g}")
+    for ep in episodes:
+        policy.require_grid(ep.situation.grid_size, f"episode {ep.example_id} of split {ep.split!r}")
     was_training = policy.model.training
     policy.model.eval()
     mine = shard_of(range(0, len(episodes), batch_size), ranks)

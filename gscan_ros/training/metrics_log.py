@@ -82,3 +82,16 @@ def _warn_once(path: Path, message: str) -> None:
     if path not in _warned:
         _warned.add(path)
         log.warning(message)
+
+
+def finished_end(events: list[dict], cfg) -> dict | None:
+    """The last "end" event when it closed the training (budget reached, target reached, or
+    out of its time budget) and no later start reopened it; else None."""
+    for event in reversed(events):
+        kind = event.get("event")
+        if kind == "start":
+            return None
+        if kind == "end":
+            out_of_time = cfg.max_minutes and event.get("elapsed_s", 0) >= cfg.max_minutes * 60
+            return event if event["step"] >= cfg.max_updates or event.get("reached_target") or out_of_time else None
+    return None

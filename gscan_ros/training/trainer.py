@@ -43,7 +43,7 @@ from gscan_ros.training import distributed
 from gscan_ros.training.batches import EpisodeStore, EpochCursor, iterate_batches, word_repeats
 from gscan_ros.training.config import SCREEN_SEED_STRIDE, ConfigError, TrainConfig, config_changes
 from gscan_ros.training.evaluate import evaluate_episodes, exact_match_by_group
-from gscan_ros.training.metrics_log import append_event, read_events, rewind
+from gscan_ros.training.metrics_log import append_event, finished_end, read_events, rewind
 from gscan_ros.training.step import TrainingDiverged, TrainStep
 
 # Seed screening: candidate k of a run with seed s has seed s + SCREEN_SEED_STRIDE k
@@ -156,16 +156,15 @@ def new_model(cfg: TrainConfig, parser, lexicon: Lexicon, store: EpisodeStore):
     return build_model(cfg.model_kind, model_settings(cfg, store), {"tokens": command_vocabulary()})
 
 
-def iter_split(data: str, split: str, limit: int = 0) -> Iterator:
-    """Episodes of `split` streamed from `data` (the first `limit`; 0 = all)."""
+def iter_split(data: str, split: str) -> Iterator:
+    """Episodes of `split` streamed from `data`."""
     from gscan_ros.data.io import iter_episodes
 
-    episodes = iter_episodes(data, [split])
-    return itertools.islice(episodes, limit) if limit else episodes
+    return iter_episodes(data, [split])
 
 
-def load_split(data: str, split: str, limit: int = 0) -> list:
-    return list(iter_split(data, split, limit))
+def load_split(data: str, split: str) -> list:
+    return list(iter_split(data, split))
 
 
 def split_cache(data: str, split: str, include_incomplete: bool = False):
@@ -291,10 +290,18 @@ class Run:
         self.fresh_start(cfg.seed)
 
     def load_dev(self, data: str) -> None:
-        """The validation episodes; none is an error (a best.pt picked on nothing means nothing)."""
+        """The validation episodes; none is an error (a best.pt picked on nothing means nothing),
+        and so is one on another grid than the train split's (refused now, not at the first
+        validation)."""
         self.dev_eps = load_dev(data, self.cfg)
         if not self.dev_eps:
             raise DatasetFormatError(f"dataset {data!r} has no {self.cfg.dev_split!r} episodes to validate on")
+        g = self.store.grid_size
+        other = next((ep for ep in self.dev_eps if g is not None and ep.situation.grid_size != g), None)
+        if other is not None:
+            d = other.situation.grid_size
+            raise DatasetFormatError(f"dataset {data!r}: {self.cfg.dev_split} episode {other.example_id} is on a "
+                                     f"{d}x{d} grid, the {self.cfg.train_split!r} split on {g}x{g}")
 
     def fresh_start(self, seed: int) -> None:
         """A new model, optimizer and schedule from `seed`, at update 0 (the state `seed` alone gives)."""
@@ -310,7 +317,7 @@ class Run:
         A best.pt older than the best last.pt records (a stop between the two writes of
         `save_resume_point`) is written again from last.pt, whose weights it was."""
         cfg = self.cfg
-        ckpt = self.ranks.from_main(lambda: _read_resume_checkpoint(self.files, cfg))
+        ckpt = self.ranks.from_main(lambda: _read_resume_checkpoint(self.files, cfg, self.data, len(self.store)))
         restore_model(ckpt, self.model)
         self.optimizer.load_state_dict(ckpt["optimizer"])
         self.step = int(ckpt["step"])
@@ -322,6 +329,7 @@ class Run:
         self.best = float(ckpt["best_dev_exact_match"])
         self.best_step = ckpt.get("best_step")
         self.elapsed_before = float(ckpt.get("elapsed_s", 0.0))
+        self.last_metrics = dict(ckpt.get("metrics") or {})  # a stop after the last validation: not redone
         _restore_rng(ckpt["rng"], self.ranks.device)
         if "screen" in ckpt:  # stopped during the seed screen: it goes on at the next candidate
             self.screen_resume = {**ckpt["screen"], "rng": ckpt["rng"]}
@@ -373,8 +381,8 @@ class Run:
             try:
                 loss = self.train_step(ids)
             except TrainingDiverged as exc:
-                raise TrainingDiverged(f"{exc} at update {self.step + 1}; {self.files.last} holds the last good "
-                                       "state (try a lower lr or grad_clip)") from None
+                kept = f"; {self.files.last} holds the last good state" if self.files.last.is_file() else ""
+                raise TrainingDiverged(f"{exc} at update {self.step + 1}{kept} (try a lower lr or grad_clip)") from None
             self.step, self.cursor = self.step + 1, cursor
             if cfg.batch_size_at(self.step) != cfg.batch_size_at(self.step - 1):
                 # The new size starts a fresh epoch, so a cursor saved from here on counts its batches.
@@ -390,6 +398,7 @@ class Run:
             # Rank 0's clock and validations decide for every rank, so all stop at the same update.
             out_of_time = bool(budget_s) and ranks.from_main(lambda: self.elapsed() >= budget_s)
             reached = False
+            paused = time.time()  # validation and checkpoints are no training: the rate leaves them out
             if self.step % cfg.validate_every == 0 or self.step == cfg.max_updates or out_of_time:
                 self.last_metrics = ranks.from_main(self.validate)
                 reached = self.reached_target(self.last_metrics["dev_exact_match"])
@@ -398,6 +407,7 @@ class Run:
                 self.save_resume_point()
             if main and cfg.snapshot_every and self.step % cfg.snapshot_every == 0:
                 self.checkpoint(self.files.snapshot(self.step), self.last_metrics, training_state=False)
+            window.paused += time.time() - paused
             if out_of_time or reached:
                 break
         bar.close()
@@ -482,7 +492,8 @@ class Run:
                    "dev_examples": len(self.dev_eps), "elapsed_s": round(self.elapsed(), 2),
                    "lr": self.optimizer.param_groups[0]["lr"], "dev_by_group": exact_match_by_group(res.predictions)}
         if res.exact_match > self.best or not self.files.best.exists():
-            self.best, self.best_step, self.best_unsaved = max(self.best, res.exact_match), self.step, True
+            # Without best.pt (lost since the resume), these weights become it, and its score with them.
+            self.best, self.best_step, self.best_unsaved = res.exact_match, self.step, True
         append_event(self.files.metrics, {"event": "validation", **metrics})
         plot_learning_curve(self.files.metrics, self.files.curve)
         if self.on_validation is not None:
@@ -533,6 +544,7 @@ class _LossWindow:
 
     def __init__(self):
         self.loss, self.examples, self.updates, self.since = 0.0, 0, 0, time.time()
+        self.paused = 0.0  # seconds of validation and checkpoints within the window
 
     def add(self, loss: float, examples: int) -> None:
         self.loss += loss
@@ -543,13 +555,32 @@ class _LossWindow:
         return self.loss / self.updates
 
     def rate(self, now: float) -> float:
-        return self.examples / max(now - self.since, 1e-9)
+        """Examples per second of training (validation and checkpoints left out)."""
+        return self.examples / max(now - self.since - self.paused, 1e-9)
 
 
-def _read_resume_checkpoint(files: RunFiles, cfg: TrainConfig) -> dict:
+def _read_resume_checkpoint(files: RunFiles, cfg: TrainConfig, data: str, train_examples: int) -> dict:
     """last.pt, or with a warning the one before it when last.pt is missing (a crash between
     the two renames of its save) or unreadable; ConfigError when `cfg` changes what the run
-    trained with (`config_changes`)."""
+    trained with (`config_changes`), when `data` is not the dataset it trained on (another
+    name or another number of train episodes: its batch order and best dev score would mean
+    nothing), or when the run has nothing left to train (`finished_end`, or past max_updates)."""
+    events = read_events(files.metrics)
+    end = finished_end(events, cfg)
+    if end is not None:
+        why = ("it reached target_dev_exact_match" if end.get("reached_target")
+               else f"max_updates {cfg.max_updates}" if end["step"] >= cfg.max_updates else "max_minutes")
+        raise ConfigError(f"--resume: {files.root} finished at update {end['step']} ({why}); raise it to "
+                          f"train on, or start a new run")
+    starts = [e for e in events if e.get("event") == "start"]
+    if starts:
+        was, count = starts[-1].get("data"), starts[-1].get("train_examples")
+        if was and Path(was).name != Path(data).name:
+            raise ConfigError(f"--resume: {files.root} trained on {was}, not {data}; resume with its own "
+                              f"data or start a new run")
+        if count is not None and count != train_examples:
+            raise ConfigError(f"--resume: {files.root} trained on {count} train episodes, {data} gives "
+                              f"{train_examples}; resume with its own data or start a new run")
     try:
         path, ckpt = files.last, read_checkpoint(files.last)
     except CheckpointError as exc:
@@ -557,10 +588,12 @@ def _read_resume_checkpoint(files: RunFiles, cfg: TrainConfig) -> dict:
             raise
         log.warning("%s; resuming from %s, the checkpoint before it", exc, files.previous)
         path, ckpt = files.previous, read_checkpoint(files.previous)
-    changed = config_changes(ckpt.get("train_config", cfg.to_dict()), cfg, read_events(files.metrics))
+    changed = config_changes(ckpt.get("train_config", cfg.to_dict()), cfg, events)
     if changed:
         raise ConfigError(f"--resume: {path} was trained with other settings of {', '.join(changed)}; resume with "
                           f"the run's own (its config.yaml) or start a new run")
+    if int(ckpt["step"]) > cfg.max_updates:
+        raise ConfigError(f"--resume: {path} is at update {ckpt['step']}, past max_updates {cfg.max_updates}")
     return ckpt
 
 

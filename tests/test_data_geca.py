@@ -7,7 +7,7 @@ import pytest
 from gscan_ros.cli import main
 from gscan_ros.cli.verify import check_episode
 from gscan_ros.data.dataset import Example, iter_raw_examples, read_header
-from gscan_ros.data.geca import augment
+from gscan_ros.data.geca import HOLD_OUT_SPLITS, augment
 from gscan_ros.data.generate import GenerationConfig, generate_dataset
 from gscan_ros.data.io import iter_episodes
 from gscan_ros.errors import GscanError
@@ -65,6 +65,46 @@ def test_keeping_a_split_the_dataset_does_not_hold_out_is_refused():
     with pytest.raises(GscanError, match=r"--keep-held-out visual: not a hold-out split of the dataset "
                                          r"\(those are: visual_easier\)"):
         augment(TRAIN, examples=5, seed=0, held_out=["visual_easier"], keep_held_out=["visual"])
+
+
+def test_a_route_across_a_large_grid_is_placed_where_it_fits():
+    """Routes are measured on no grid at all, so one of 10 cells on a 12x12 grid (more than
+    half the largest grid) is kept, not dropped as 'no layout for its route'."""
+    from gscan_ros.data.geca import _route
+    from gscan_ros.world.types import Action
+
+    assert _route((Action.TURN_LEFT, *(Action.WALK,) * 10)) == (-10, 0)
+    walk, right, push = Action.WALK, Action.TURN_RIGHT, Action.PUSH
+    assert _route((*(walk,) * 9, right, walk, walk, push, walk)) == (2, 9)
+
+    def far(command, shape, color, agent, target):
+        obj = WorldObject(shape, color, 2, Position(*target))
+        situation = Situation(Position(*agent), Heading.EAST, (obj,), target_object=obj, grid_size=12)
+        return Example(tokens=split_command(command), situation=situation,
+                       target_commands=tuple(demonstrate(situation, command)))
+
+    train = [far("walk to a red circle", "circle", "red", (0, 0), (0, 10)),
+             far("walk to a yellow circle", "circle", "yellow", (0, 0), (0, 10)),
+             far("walk to a red square", "square", "red", (11, 1), (1, 1))]
+    report = augment(train, examples=5, seed=0)
+    assert [e.command for e in report.added] == ["walk to a yellow square"]
+    assert report.added[0].target_commands == train[2].target_commands and report.dropped == {}
+
+
+def test_an_empty_split_of_the_input_is_copied_and_holds_its_kinds_out(tmp_path):
+    """A small dataset leaves some hold-out splits empty: they stay in the output, in the
+    input's order, and still claim their kinds (none of them is added to train)."""
+    generate_dataset(tmp_path / "small", GenerationConfig(seed=0, max_examples=12), workers=1)
+    before: dict[str, int] = {}
+    list(iter_raw_examples(tmp_path / "small", sizes=before))
+    empty = [s for s, n in before.items() if n == 0]
+    assert empty, "the small dataset has an empty split"
+    path = _augmented(tmp_path / "small", tmp_path / "out", 0)
+    after: dict[str, int] = {}
+    list(iter_raw_examples(path, sizes=after))
+    assert list(after) == list(before) and all(after[s] == 0 for s in empty)
+    record = read_header(path).extra["gscan_ros"]["augmentation"]
+    assert set(record["held_out"]) == set(before) & HOLD_OUT_SPLITS and set(empty) & HOLD_OUT_SPLITS
 
 
 @pytest.fixture(scope="module")

@@ -376,12 +376,14 @@ def read_header(path: str | os.PathLike) -> DatasetHeader:
     return DatasetHeader.from_json(header)
 
 
-def iter_raw_examples(path: str | os.PathLike, splits: Iterable[str] | None = None) -> Iterator[tuple[str, int, dict]]:
-    """(split, index, example dict) in file order, streaming; `splits` filters."""
+def iter_raw_examples(path: str | os.PathLike, splits: Iterable[str] | None = None, *,
+                      sizes: dict[str, int] | None = None) -> Iterator[tuple[str, int, dict]]:
+    """(split, index, example dict) in file order, streaming; `splits` filters. `sizes`, when
+    given, gets every split's example count in file order (empty splits included)."""
     from gscan_ros.data.splits import require_splits
 
     wanted = None if splits is None else frozenset(splits)
-    sizes: dict[str, int] = {}
+    sizes = {} if sizes is None else sizes
     file = _dataset_path(path)
     yield from _walk(file, {}, wanted, sizes=sizes)
     if wanted is not None:

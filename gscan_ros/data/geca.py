@@ -49,11 +49,10 @@ from gscan_ros.data.io import select_bags
 from gscan_ros.data.sampling import ObjectSpec, Placement, possible_targets, sample_situations
 from gscan_ros.data.splits import HOLD_OUT_RULES, held_out_splits
 from gscan_ros.errors import CommandError, DatasetFormatError, GscanError, InvalidActionError
-from gscan_ros.world import Action, World, demonstrate
+from gscan_ros.world import Action, demonstrate
 from gscan_ros.world.command import split_command
 from gscan_ros.world.planner import resolve_target
 from gscan_ros.world.types import (
-    SUPPORTED_GRID_SIZES,
     Heading,
     Position,
     Situation,
@@ -354,28 +353,27 @@ def _grounded(rng: np.random.Generator, tokens: list[str], actions: list[str], o
                             referred_target=command.referred_target)
 
 
-def _route(actions: tuple[Action, ...]) -> tuple[int, int] | None:
+def _route(actions: tuple[Action, ...]) -> tuple[int, int]:
     """(rows, columns) from the agent to the target the actions walk to: the agent's
-    displacement before its first push or pull (a gSCAN agent walks onto the target's
-    cell), replayed from the middle of the largest empty World; None if a walk hits its edge."""
-    size = SUPPORTED_GRID_SIZES[-1]
-    start = Position(size // 2, size // 2)
-    world = World(Situation(start, Heading.EAST, (), grid_size=size))
+    displacement before its first push or pull (a gSCAN agent walks onto the target's cell
+    and starts facing east), on an unbounded grid: whether it fits is `_placement`'s question."""
+    heading, row, col = Heading.EAST, 0, 0
     for action in actions:
         if action in (Action.PUSH, Action.PULL):
             break
-        before = world.agent_position
-        world.step(action)
-        if action is Action.WALK and world.agent_position == before:
-            return None
-    end = world.agent_position
-    return end.row - start.row, end.col - start.col
+        if action is Action.WALK:
+            row, col = row + heading.delta[0], col + heading.delta[1]
+        elif action is Action.TURN_LEFT:
+            heading = Heading((heading - 1) % 4)
+        elif action is Action.TURN_RIGHT:
+            heading = Heading((heading + 1) % 4)
+    return row, col
 
 
-def _placement(rng: np.random.Generator, route: tuple[int, int] | None, origin: _Origin) -> Placement | None:
+def _placement(rng: np.random.Generator, route: tuple[int, int], origin: _Origin) -> Placement | None:
     """Agent and target cells for a route on the origin's grid: the origin's agent cell when
     the route fits from there, else a uniform one it fits from; None if it fits nowhere."""
-    if route is None or route == (0, 0):
+    if route == (0, 0):
         return None
     (d_row, d_col), n = route, origin.grid_size
     rows, cols = range(max(0, -d_row), min(n, n - d_row)), range(max(0, -d_col), min(n, n - d_col))
@@ -429,8 +427,14 @@ def augment_dataset(data: str | os.PathLike, out_dir: str | os.PathLike, *, exam
         check_targets([target], overwrite=overwrite)
         with scratch(out_dir, "augment") as stage:
             splits: dict[str, Path] = {}
+            names: dict[str, int] = {}  # every split of the input, in its order (empty ones too)
             with ExitStack() as files:
-                corpus = _Corpus.of(_staged(_dataset_lines(data, progress), stage, splits, files))
+                corpus = _Corpus.of(_staged(_dataset_lines(data, progress, names), stage, splits, files))
+            for name in names:
+                if name not in splits:  # an empty split: copied as it is, and it claims its kinds
+                    splits[name] = stage / f"{len(splits)}.jsonl"
+                    splits[name].touch()
+            splits = {name: splits[name] for name in [*names, *(s for s in splits if s not in names)]}
             held_out = frozenset(splits) & HOLD_OUT_SPLITS
             report = _generate(corpus, examples, seed, held_out, kept_splits(keep_held_out, held_out))
             lines = {split: _lines(path, report.added if split == TRAIN else ()) for split, path in splits.items()}
@@ -439,26 +443,25 @@ def augment_dataset(data: str | os.PathLike, out_dir: str | os.PathLike, *, exam
     return report
 
 
-def _dataset_lines(data: str | os.PathLike, progress: bool) -> Iterator[tuple[str, str, Example | None]]:
+def _dataset_lines(data: str | os.PathLike, progress: bool,
+                   names: dict[str, int]) -> Iterator[tuple[str, str, Example | None]]:
     """(split, JSON line, Example for train examples) of every example, in file order:
-    dataset.txt lines are the input's own JSON, bag episodes are written as examples."""
+    dataset.txt lines are the input's own JSON, bag episodes are written as examples.
+    `names` gets the input's splits with their sizes, empty ones included."""
     from tqdm import tqdm
 
     bags = select_bags(data)
     if bags is None:
-        from gscan_ros.data.dataset import iter_raw_examples
+        from gscan_ros.data.dataset import decode_example, iter_raw_examples
 
-        for split, index, raw in tqdm(iter_raw_examples(data), unit="ex", desc="read", disable=not progress):
-            example = None
-            if split == TRAIN:
-                try:
-                    example = Example.from_json(raw)
-                except GscanError as exc:
-                    raise DatasetFormatError(f"example {index} of split {split!r}: {exc}") from None
+        for split, index, raw in tqdm(iter_raw_examples(data, sizes=names), unit="ex", desc="read",
+                                      disable=not progress):
+            example = decode_example(split, index, raw) if split == TRAIN else None
             yield split, json.dumps(raw, separators=(",", ":")), example
         return
-    from gscan_ros.data.io import iter_episodes
+    from gscan_ros.data.io import bag_splits, iter_episodes
 
+    names.update(bag_splits(data) or {})
     for episode in tqdm(iter_episodes(data), unit="ex", desc="read", disable=not progress):
         tokens = split_command(episode.command)
         meta = episode.meta

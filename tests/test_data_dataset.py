@@ -83,6 +83,28 @@ def test_split_filter_and_missing_split():
         list(iter_examples(FIXTURE, splits=["visual_hard"]))
 
 
+def test_a_split_our_header_does_not_declare_is_refused_before_any_example(tiny_dataset, capsys):
+    """Files this project writes declare their split sizes first: a misspelt split is refused
+    at once, also where --limit would stop the stream before its end."""
+    from gscan_ros.cli import main
+
+    stream = iter_examples(tiny_dataset, splits=["train", "visaul"])
+    with pytest.raises(DatasetFormatError, match=r"no examples in split\(s\) visaul of .* \(it has: train, dev"):
+        next(stream)
+    assert main(["verify", str(tiny_dataset), "--splits", "train,visaul", "--limit", "3", "--quiet"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no examples in split(s) visaul" in err[0]
+
+
+def test_a_header_must_declare_the_split_sizes_it_is_written_with(tmp_path):
+    header = ds.DatasetHeader(extra={"gscan_ros": {"split_sizes": {"train": 2}}})
+    example = next(iter_examples(FIXTURE, splits=["train"]))[2]
+    ds.write_dataset(tmp_path / "ok.txt", header, {"train": [example, example]})
+    with pytest.raises(Exception, match=r"declares split sizes \{'train': 2\}, the examples are \{'train': 1\}"):
+        ds.write_dataset(tmp_path / "bad.txt", header, {"train": [example]})
+    assert not (tmp_path / "bad.txt").exists()
+
+
 def test_episode_conversion_and_io_dispatch():
     episodes = list(iter_episodes(FIXTURE))
     assert [e.split for e in episodes] == ["train", "train", "adverb_1"]
@@ -108,6 +130,8 @@ def _corrupt(tmp_path, edit) -> Path:
      "example 1 of split 'train': field 'situation': missing"),
     (lambda e: e.__setitem__("command", 7),
      "example 1 of split 'train': field 'command': expected a string, got int"),
+    (lambda e: e.__setitem__("command", "walk to a big square while spinning"),  # spaces, not commas
+     "example 1 of split 'train': field 'command': expected comma-joined tokens, got 'walk to a big square"),
     (lambda e: e["situation"]["placed_objects"]["0"]["object"].__setitem__("color", "purple"),
      "example 1 of split 'train': field 'situation.placed_objects.0.object.color': unknown color 'purple'"),
 ])

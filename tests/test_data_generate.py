@@ -325,6 +325,20 @@ def test_a_subset_smaller_than_k_shot_is_refused(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("argv, message", [
+    (["--k-shot", "5", "--split-kind", "length"], "--k-shot applies to --split-kind compositional only"),
+    (["--cut-off-target-length", "12"], "--cut-off-target-length applies to --split-kind length only"),
+])
+def test_an_option_of_the_other_split_kind_is_refused(tmp_path, capsys, argv, message):
+    """It would do nothing, and the header would still record it."""
+    from gscan_ros.cli import main
+
+    assert main(["generate", "--out", str(tmp_path / "out"), "--examples", "10", "--quiet", *argv]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0]
+    assert not (tmp_path / "out").exists()
+
+
 def _examples_by_split(path) -> dict[str, list[str]]:
     """Each split's examples as canonical JSON texts, in file order."""
     out = defaultdict(list)

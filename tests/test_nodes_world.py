@@ -128,6 +128,14 @@ def test_dataset_split_is_served_in_order_and_wraps_around(probe, tmp_path):
     node.destroy_node()
 
 
+def test_an_index_past_the_end_of_the_split_is_a_start_up_error(probe, tmp_path):
+    """Not a silent start at example 0: the split has no example of that index."""
+    write_bag(tmp_path / "bag", [sample_episode(seed) for seed in range(3)])
+    with pytest.raises(DatasetFormatError, match=r"split 'random' has no example 3 \(the index is past its end\)"):
+        WorldSimulatorNode(context=probe.context, parameter_overrides=parameters(
+            dataset=str(tmp_path / "bag"), split="random", index=3, publish_images=False))
+
+
 def test_missing_dataset_is_a_start_up_error(probe):
     with pytest.raises(DatasetFormatError):
         WorldSimulatorNode(context=probe.context, parameter_overrides=parameters(dataset="/no/such/dataset.txt"))

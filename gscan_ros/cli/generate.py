@@ -42,10 +42,10 @@ def register(subparsers) -> None:
                    help="1 - random test fraction (default: 0.9 compositional, 0.8 length)")
     p.add_argument("--percentage-dev", type=float_in(0, 1, high_open=True), default=0.01, metavar="P",
                    help="dev fraction of train (default: 0.01)")
-    p.add_argument("--k-shot", type=nonnegative_int, default=1, metavar="K",
-                   help="'cautiously' examples moved into train, at most the adverb_1 examples (default: 1, "
-                        "as released)")
-    p.add_argument("--cut-off-target-length", type=positive_int, default=15, metavar="L",
+    p.add_argument("--k-shot", type=nonnegative_int, metavar="K",
+                   help="compositional split: 'cautiously' examples moved into train, at most the adverb_1 "
+                        "examples (default: 1, as released)")
+    p.add_argument("--cut-off-target-length", type=positive_int, metavar="L",
                    help="length split: targets longer than L are held out (default: 15)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)

@@ -145,7 +145,8 @@ class Example:
             raise DatasetFormatError(f"expected an object, got {type(d).__name__}")
         command = _required_text(d, "command")
         tokens = tuple(command.split(","))
-        if not command or any(not t or t != t.strip() for t in tokens):
+        # One word per token; a two-word adverb ("while spinning") is the one token with a space.
+        if not command or any(not t or t != t.strip() or (" " in t and t not in ADVERBS) for t in tokens):
             raise DatasetFormatError(f"field 'command': expected comma-joined tokens, got {quoted(command)}")
         try:
             situation = Situation.from_json(_required(d, "situation"))
@@ -291,6 +292,17 @@ def _dataset_path(path: str | os.PathLike) -> Path:
     return path
 
 
+def split_sizes(header: Mapping[str, Any]) -> dict[str, int] | None:
+    """The examples per split a dataset.txt header declares (`gscan_ros.split_sizes`, written
+    by `generate` and `augment` before the examples), or None (the original generator's
+    files, and ours before 2026-12-07, declare none)."""
+    record = header.get("gscan_ros")
+    sizes = record.get("split_sizes") if isinstance(record, dict) else None
+    if not isinstance(sizes, dict) or not all(isinstance(n, int) for n in sizes.values()):
+        return None
+    return sizes
+
+
 def _walk(path: Path, header: dict, wanted: frozenset[str] | None, header_only: bool = False,
           sizes: dict[str, int] | None = None) -> Iterator[tuple[str, int, Any]]:
     """Yield (split, index, raw example) of wanted splits; fill `header` on the way, and
@@ -310,6 +322,11 @@ def _walk(path: Path, header: dict, wanted: frozenset[str] | None, header_only: 
                     if key == "examples":
                         if header_only and all(k in header for k in _HEADER_KEYS):
                             return  # our own layout: everything needed came first
+                        declared = split_sizes(header)
+                        if wanted and declared is not None:  # refused now, not after streaming the file
+                            from gscan_ros.data.splits import require_splits
+
+                            require_splits(sorted(wanted), declared, path)
                         yield from _walk_examples(stream, wanted, {} if sizes is None else sizes)
                     else:
                         header[key] = stream.value()
@@ -412,25 +429,33 @@ def write_dataset_json(path: str | os.PathLike, header: DatasetHeader,
     """Write dataset.txt from pre-serialised example JSON texts (one per line).
 
     Header keys first, then `examples` with one split after the other; the result is
-    one JSON object like the released files. Returns the file path.
+    one JSON object like the released files. Returns the file path. A header that declares
+    its split sizes (`split_sizes`) must declare those written (else a GscanError, and the
+    file is not replaced): readers trust them.
     """
     from gscan_ros.outputs import replacing
 
     path = Path(path)
     if path.is_dir():
         path = path / DATASET_FILE
+    fields = header.to_json()
+    declared, written = split_sizes(fields), {}
     with replacing(path) as tmp, open(tmp, "w", encoding="utf-8") as out:
         out.write("{\n")
-        for key, value in header.to_json().items():
+        for key, value in fields.items():
             out.write(f"{json.dumps(key)}: {json.dumps(value)},\n")
         out.write('"examples": {')
         for s, (split, lines) in enumerate(lines_by_split.items()):
             out.write(f'{"," if s else ""}\n{json.dumps(split)}: [')
+            written[split] = 0
             for i, line in enumerate(lines):
                 out.write(",\n" if i else "\n")
                 out.write(line)
+                written[split] = i + 1
             out.write("\n]")
         out.write("\n}\n}\n")
+        if declared is not None and declared != written:
+            raise GscanError(f"{path}: the header declares split sizes {declared}, the examples are {written}")
     return path
 
 

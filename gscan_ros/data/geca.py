@@ -429,7 +429,8 @@ def augment_dataset(data: str | os.PathLike, out_dir: str | os.PathLike, *, exam
             splits: dict[str, Path] = {}
             names: dict[str, int] = {}  # every split of the input, in its order (empty ones too)
             with ExitStack() as files:
-                corpus = _Corpus.of(_staged(_dataset_lines(data, progress, names), stage, splits, files))
+                counts: Counter = Counter()
+                corpus = _Corpus.of(_staged(_dataset_lines(data, progress, names), stage, splits, counts, files))
             for name in names:
                 if name not in splits:  # an empty split: copied as it is, and it claims its kinds
                     splits[name] = stage / f"{len(splits)}.jsonl"
@@ -438,7 +439,8 @@ def augment_dataset(data: str | os.PathLike, out_dir: str | os.PathLike, *, exam
             held_out = frozenset(splits) & HOLD_OUT_SPLITS
             report = _generate(corpus, examples, seed, held_out, kept_splits(keep_held_out, held_out))
             lines = {split: _lines(path, report.added if split == TRAIN else ()) for split, path in splits.items()}
-            write_dataset_json(target, _header(data, report), lines)
+            sizes = {name: counts.get(name, 0) for name in splits}
+            write_dataset_json(target, _header(data, report, sizes), lines)
     report.seconds = time.perf_counter() - start
     return report
 
@@ -472,15 +474,16 @@ def _dataset_lines(data: str | os.PathLike, progress: bool,
         yield episode.split, example_line(example), example if episode.split == TRAIN else None
 
 
-def _staged(lines, stage: Path, splits: dict[str, Path], files: ExitStack) -> Iterator[Example]:
-    """Write each line to its split's file in `stage` (recorded in `splits`, opened on
-    `files`); yield the train examples."""
+def _staged(lines, stage: Path, splits: dict[str, Path], counts: Counter, files: ExitStack) -> Iterator[Example]:
+    """Write each line to its split's file in `stage` (recorded in `splits`, counted in
+    `counts`, opened on `files`); yield the train examples."""
     handles = {}
     for split, line, example in lines:
         if split not in handles:
             splits[split] = stage / f"{len(splits)}.jsonl"
             handles[split] = files.enter_context(open(splits[split], "w", encoding="utf-8"))
         handles[split].write(line + "\n")
+        counts[split] += 1
         if example is not None:
             yield example
 
@@ -493,7 +496,7 @@ def _lines(path: Path, added: list[Example]) -> Iterator[str]:
         yield example_line(example)
 
 
-def _header(data: str | os.PathLike, report: GecaReport) -> DatasetHeader:
+def _header(data: str | os.PathLike, report: GecaReport, sizes: dict[str, int]) -> DatasetHeader:
     """The input's header (dataset.txt) or the default one (bags, with the situations' grid
     size), with the augmentation recorded under `gscan_ros.augmentation`."""
     if select_bags(data) is None:
@@ -502,5 +505,7 @@ def _header(data: str | os.PathLike, report: GecaReport) -> DatasetHeader:
         header = DatasetHeader(grid_size=report.grid_size)
     record = dict(report.record(), source=str(data),
                   train_indices=[report.train_examples, report.train_examples + len(report.added)])
-    header.extra.setdefault("gscan_ros", {})["augmentation"] = record
+    ours = header.extra.setdefault("gscan_ros", {})
+    ours["augmentation"] = record
+    ours["split_sizes"] = {**sizes, TRAIN: sizes.get(TRAIN, 0) + len(report.added)}
     return header

@@ -85,8 +85,8 @@ class GenerationConfig:
     num_resampling: int | None = None
     percentage_train: float | None = None  # 1 - random test fraction
     percentage_dev: float = 0.01
-    k_shot: int = 1  # cautiously examples moved into train (compositional only)
-    cut_off_target_length: int = 15  # length split: longer targets are held out
+    k_shot: int | None = None  # cautiously examples moved into train (compositional only; default 1)
+    cut_off_target_length: int | None = None  # length split only: longer targets are held out (default 15)
     grid_size: int | None = None
     other_objects_sample_percentage: float = OTHER_OBJECTS_SAMPLE_PERCENTAGE
 
@@ -94,8 +94,16 @@ class GenerationConfig:
         if self.split_kind not in SPLIT_KINDS:
             raise GscanError(f"unknown split kind {self.split_kind!r}; choose from {', '.join(SPLIT_KINDS)}")
         defaults = _DEFAULTS[self.split_kind]
+        # An option of the other split kind would be recorded in the header and do nothing.
+        if self.split_kind == "compositional" and self.cut_off_target_length is not None:
+            raise GscanError("--cut-off-target-length applies to --split-kind length only")
+        if self.split_kind == "length" and self.k_shot is not None:
+            raise GscanError("--k-shot applies to --split-kind compositional only")
         out = replace(
             self,
+            k_shot=(1 if self.k_shot is None else self.k_shot) if self.split_kind == "compositional" else None,
+            cut_off_target_length=((15 if self.cut_off_target_length is None else self.cut_off_target_length)
+                                   if self.split_kind == "length" else None),
             num_resampling=defaults["num_resampling"] if self.num_resampling is None else self.num_resampling,
             percentage_train=defaults["percentage_train"] if self.percentage_train is None else self.percentage_train,
             grid_size=defaults["grid_size"] if self.grid_size is None else self.grid_size,
@@ -411,6 +419,8 @@ def _header(config: GenerationConfig, result: SplitResult, generated: int, candi
         "discarded_equivalent": result.discarded_equivalent,
         # The k-shot examples are the last ones of train (quirk Q2, docs/model.md: seeded and recorded).
         "k_shot_train_indices": list(range(len(train) - len(result.k_shot), len(train))),
+        # Readers refuse a split the file lacks before streaming it (`dataset.SPLIT_SIZES`).
+        "split_sizes": {s: len(v) for s, v in result.splits.items()},
     }
     if config.split_kind == "length":
         record["cut_off_target_length"] = config.cut_off_target_length

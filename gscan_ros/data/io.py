@@ -227,12 +227,12 @@ def iter_test_episodes(path: str | os.PathLike, splits: list[str] | None = None)
 
         yield from iter_bag_episodes(path, ALL_TEST_SPLITS)
     else:
-        from gscan_ros.data.dataset import Example, iter_raw_examples
+        from gscan_ros.data.dataset import decode_example, iter_raw_examples
 
         _require_dataset_txt(path)
         for split, index, raw in iter_raw_examples(path):
             if split in ALL_TEST_SPLITS:
-                yield Example.from_json(raw).to_episode(split, index)
+                yield decode_example(split, index, raw).to_episode(split, index)
 
 
 def select_test_episodes(path: str | os.PathLike, splits: list[str] | None, max_examples: int = 0,

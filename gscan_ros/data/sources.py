@@ -32,6 +32,7 @@ class DatasetSource:
     index: int = 0
     _position: int = field(init=False, repr=False)  # the example of the split the next call serves
     _loaders: Iterator[Callable[[], Episode]] | None = field(default=None, init=False, repr=False)
+    _started: bool = field(default=False, init=False, repr=False)  # some example was reached: the end wraps
 
     def __post_init__(self) -> None:
         self._position = self.index
@@ -48,6 +49,9 @@ class DatasetSource:
             if self._loaders is None:
                 self._loaders = itertools.islice(iter_episode_loaders(self.path, [self.split]), self._position, None)
             load = next(self._loaders, None)
+            if load is None and not self._started and self._position:
+                raise DatasetFormatError(f"{self.path}: split {self.split!r} has no example {self._position} "
+                                         f"(the index is past its end)")
             if load is None:  # past the end of the split: start over
                 self._loaders, self._position = iter_episode_loaders(self.path, [self.split]), 0
                 load = next(self._loaders, None)
@@ -56,6 +60,7 @@ class DatasetSource:
         except Exception:
             self._loaders = None  # a failed stream is closed: the next call reopens it at the same example
             raise
+        self._started = True
         return load
 
     def describe(self, episode: Episode) -> str:

@@ -280,8 +280,9 @@ def _dataset(name, spec, where: str) -> DataRecipe:
                                                      "cut_off_target_length", "grid_size")
                     if getattr(recipe, k) is not None}
         try:
+            k_shot = recipe.k_shot if recipe.split_kind == "compositional" else None  # `flags()` passes it so
             GenerationConfig(seed=recipe.seed, split_kind=recipe.split_kind, max_examples=recipe.examples,
-                             k_shot=recipe.k_shot, **optional).resolved()
+                             k_shot=k_shot, **optional).resolved()
         except GscanError as error:
             raise PlanError(f"{where}: {key}: {error}") from None
     return recipe

@@ -81,15 +81,13 @@ class Command:
 
     @cached_property
     def tokens(self) -> tuple[str, ...]:
-        """gSCAN tokens ("while spinning" is one token)."""
-        head = (self.verb, "a") if self.transitive else (self.verb, "to", "a")
-        adjectives = tuple(w for w in (self.color, self.size) if w)
-        return head + adjectives + (self.noun,) + ((self.adverb,) if self.adverb else ())
+        """gSCAN tokens ("while spinning" is one token): the frame's."""
+        return self.frame.tokens()
 
     @property
     def text(self) -> str:
         """Space-joined tokens, the command form used across gscan_ros."""
-        return " ".join(self.tokens)
+        return self.frame.text
 
     @property
     def json_text(self) -> str:
@@ -99,7 +97,7 @@ class Command:
     @property
     def referred_target(self) -> str:
         """`referred_target` field: size, color, noun joined by spaces, empty parts kept."""
-        return f"{self.size} {self.color} {self.noun}"
+        return self.frame.referred_target
 
     @cached_property
     def derivation(self) -> str:

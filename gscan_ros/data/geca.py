@@ -46,7 +46,7 @@ import numpy as np
 from gscan_ros.data.commands import Command, parse_command
 from gscan_ros.data.dataset import DATASET_FILE, DatasetHeader, Example, example_line, read_header, write_dataset_json
 from gscan_ros.data.io import select_bags
-from gscan_ros.data.sampling import ObjectSpec, Placement, possible_targets, sample_situations
+from gscan_ros.data.sampling import ObjectSpec, Placement, agent_cells, possible_targets, sample_situations
 from gscan_ros.data.splits import HOLD_OUT_RULES, held_out_splits
 from gscan_ros.errors import CommandError, DatasetFormatError, GscanError, InvalidActionError
 from gscan_ros.world import Action, demonstrate
@@ -375,8 +375,8 @@ def _placement(rng: np.random.Generator, route: tuple[int, int], origin: _Origin
     the route fits from there, else a uniform one it fits from; None if it fits nowhere."""
     if route == (0, 0):
         return None
-    (d_row, d_col), n = route, origin.grid_size
-    rows, cols = range(max(0, -d_row), min(n, n - d_row)), range(max(0, -d_col), min(n, n - d_col))
+    d_row, d_col = route
+    rows, cols = agent_cells(origin.grid_size, d_row, d_col)
     if not rows or not cols:
         return None
     agent = origin.agent

@@ -82,12 +82,17 @@ def sample_placements(rng: np.random.Generator, grid_size: int = GRID_SIZE,
     return tuple(out)
 
 
+def agent_cells(grid_size: int, d_row: int, d_col: int) -> tuple[range, range]:
+    """The rows and the columns an agent may stand on with its target (d_row, d_col) away on the grid."""
+    return (range(max(0, -d_row), min(grid_size, grid_size - d_row)),
+            range(max(0, -d_col), min(grid_size, grid_size - d_col)))
+
+
 def _place(rng: np.random.Generator, grid_size: int, legs, direction: str) -> Placement:
     """An agent cell drawn uniformly among those from which the legs stay on the grid."""
     d_row = sum(_STEP[d][0] * k for d, k in legs)
     d_col = sum(_STEP[d][1] * k for d, k in legs)
-    rows = range(max(0, -d_row), min(grid_size, grid_size - d_row))
-    cols = range(max(0, -d_col), min(grid_size, grid_size - d_col))
+    rows, cols = agent_cells(grid_size, d_row, d_col)
     agent = Position(rows[int(rng.integers(len(rows)))], cols[int(rng.integers(len(cols)))])
     target = Position(agent.row + d_row, agent.col + d_col)
     return Placement(agent, target, direction, abs(d_row) + abs(d_col))

@@ -227,6 +227,31 @@ def test_generate_refuses_an_existing_dataset_without_overwrite(tmp_path, capsys
         assert _files(tmp_path) == before
 
 
+@pytest.mark.parametrize("fmt", ["txt", "mcap"])
+def test_a_swap_that_fails_midway_puts_the_old_dataset_back(tmp_path, monkeypatch, fmt):
+    """`--overwrite` swaps the new dataset in by renames; when the last one fails (the disk),
+    the old dataset is back in place, whole."""
+    import errno
+    from pathlib import Path
+
+    out = tmp_path / "data"
+    generate_dataset(out, GenerationConfig(seed=1, max_examples=10), fmt=fmt, workers=1)
+    before = _files(out)
+    rename = Path.rename
+
+    def failing(self, target):
+        if Path(target).parent == out and self.parent.name == "new" and \
+                Path(target).name in ("dataset.txt", "manifest.json"):
+            raise OSError(errno.EIO, "I/O error", str(target))
+        return rename(self, target)
+
+    monkeypatch.setattr(Path, "rename", failing)
+    with pytest.raises(OSError):
+        generate_dataset(out, GenerationConfig(seed=2, max_examples=10), fmt=fmt, workers=1, overwrite=True)
+    monkeypatch.undo()
+    assert _files(out) == before
+
+
 def test_generate_into_a_bag_is_refused_and_overwrite_replaces_the_bag(tmp_path, capsys):
     """A folder that is a bag reads as that bag, whatever else it holds: writing a dataset
     beside the bag's files would give a dataset no command reads."""

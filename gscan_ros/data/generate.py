@@ -526,7 +526,18 @@ def _install(built: Path, out_dir: Path, previous: list[Path], trash: Path) -> N
     """Swap the complete dataset `built` in for `previous`: by renames, the old manifest
     first (the folder reads as incomplete from then on), the new manifest last."""
     trash.mkdir()
-    for path in sorted(previous, key=lambda p: p.name != DATASET_MANIFEST):
-        path.rename(trash / path.name)
-    for path in sorted(built.iterdir(), key=lambda p: p.name == DATASET_MANIFEST):
-        path.rename(out_dir / path.name)
+    moved_out: list[Path] = []
+    moved_in: list[Path] = []
+    try:
+        for path in sorted(previous, key=lambda p: p.name != DATASET_MANIFEST):
+            path.rename(trash / path.name)
+            moved_out.append(path)
+        for path in sorted(built.iterdir(), key=lambda p: p.name == DATASET_MANIFEST):
+            path.rename(out_dir / path.name)
+            moved_in.append(out_dir / path.name)
+    except BaseException:  # a failed rename: the old dataset goes back, whole (the staging folder is removed)
+        for path in reversed(moved_in):
+            path.rename(built / path.name)
+        for path in reversed(moved_out):
+            (trash / path.name).rename(path)
+        raise

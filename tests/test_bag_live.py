@@ -97,8 +97,7 @@ def test_messages_logged_out_of_publication_order_read_back(tmp_path):
         published = [(c.topic, s.name, m.publish_time, m.data) for s, c, m in make_reader(f).iter_messages()]
     with BagWriter(tmp_path / "logged") as writer:
         for topic, msg_type, publish_ns, data in sorted(published, key=lambda m: m[2] + latency[m[0]]):
-            channel = writer.channel_id(topic) or writer.register_channel(topic, msg_type)
-            writer.add_record(topic, channel, data, publish_ns + latency[topic], publish_ns, 0)
+            writer.add_record(writer.channel(topic, msg_type), data, publish_ns + latency[topic], publish_ns, 0)
         for episode in episodes:
             writer.count_episode(episode.split)
     logged = _file_order(tmp_path / "logged")

@@ -364,6 +364,31 @@ def test_repair_overwrite_never_deletes_a_folder_that_holds_more_than_a_bag(inta
     assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
 
 
+def test_a_topic_of_two_types_keeps_a_channel_for_each(episodes, tmp_path):
+    """A merged recording can hold a stack topic's name with another node's type too: the
+    reader reads that channel as context, and repair copies each channel with its own type
+    and schema (a writer keyed by name alone had put both on the first one's)."""
+    bag = tmp_path / "bag"
+    int32 = "std_msgs/msg/Int32"
+    with BagWriter(bag) as writer:
+        for i, episode in enumerate(episodes[:3]):
+            writer.write_episode(episode)
+            other = writer.channel("/action", int32, schema=(SchemaEncoding.ROS2, message_definition(int32).encode()))
+            writer.add_record(other, msg_to_cdr(message_class(int32)(data=i)), (20 + i) * S, (20 + i) * S, 0)
+    entries = [(t.name, t.msg_type, t.message_count) for t in read_bag_info(bag).entries if t.name == "/action"]
+    assert entries == [("/action", "std_msgs/msg/String", entries[0][2]), ("/action", int32, 3)]
+    reader = iter_bag_episodes(bag)
+    assert list(reader) == episodes[:3] and reader.report.complete
+    repair_bag(bag, tmp_path / "repaired")
+    assert list(iter_bag_episodes(tmp_path / "repaired")) == episodes[:3]
+    assert [(t.name, t.msg_type, t.message_count) for t in read_bag_info(tmp_path / "repaired").entries
+            if t.name == "/action"] == entries
+    with open(mcap_file(tmp_path / "repaired"), "rb") as f:
+        summary = make_reader(f).get_summary()
+    types = sorted(summary.schemas[c.schema_id].name for c in summary.channels.values() if c.topic == "/action")
+    assert types == ["std_msgs/msg/Int32", "std_msgs/msg/String"]
+
+
 def test_repairing_a_format_1_bag_keeps_its_format_and_its_episodes(tmp_path):
     """The messages are copied as they are, so the copy must still say format 1."""
     source = Path(__file__).parent / "fixtures" / "bag_v1"  # written by the format-1 writer
@@ -383,7 +408,7 @@ def test_repair_copies_another_nodes_topic_that_shares_a_stack_topics_name(episo
             writer.write_episode(episode)
         other = writer.register_channel("/status", "std_msgs/msg/Int32",
                                         schema=(SchemaEncoding.ROS2, message_definition("std_msgs/msg/Int32").encode()))
-        writer.add_record("/status", other, msg_to_cdr(message_class("std_msgs/msg/Int32")(data=7)), 10 * S, 10 * S, 0)
+        writer.add_record(other, msg_to_cdr(message_class("std_msgs/msg/Int32")(data=7)), 10 * S, 10 * S, 0)
     assert list(iter_bag_episodes(bag)) == episodes[:3]
     repair_bag(bag, tmp_path / "repaired")
     assert list(iter_bag_episodes(tmp_path / "repaired")) == episodes[:3]

@@ -267,8 +267,7 @@ def _with_earlier_observations(bag: Path, out: Path, episodes) -> None:
             if channel.topic == "/observation":
                 msg_type = interface.EARLIER_OBSERVATION_TYPE
                 data = earlier_observation_cdr(cdr_to_observation(data))
-            channel_id = writer.channel_id(channel.topic) or writer.register_channel(channel.topic, msg_type)
-            writer.add_record(channel.topic, channel_id, data, message.log_time, message.publish_time, 0)
+            writer.add_record(writer.channel(channel.topic, msg_type), data, message.log_time, message.publish_time, 0)
         for episode in episodes:
             writer.count_episode(episode.split)
 

@@ -68,13 +68,14 @@ class BagInfo:
     message_count: int
     start_ns: int
     duration_ns: int
-    topics: dict[str, TopicInfo]
+    topics: dict[str, TopicInfo]  # by name: a name listed with two types keeps its first entry
     custom: dict[str, str] = field(default_factory=dict)
     counts_final: bool = True  # False: metadata.yaml is missing, or does not list every storage file
     warnings: tuple[str, ...] = ()  # what readers log: missing metadata or files, unlisted files, custom data ignored
     # Storage files that should be there but are absent (listed in metadata.yaml, or a gap in
     # the `_<n>` numbering of a folder without it): their data is lost (`McapScan` yields LOSS).
     missing: tuple[Path, ...] = ()
+    entries: tuple[TopicInfo, ...] = ()  # every metadata.yaml topic entry in order (one per writer channel)
 
     @property
     def closed(self) -> bool:
@@ -117,14 +118,14 @@ def mcap_file_name(bag_dir: Path) -> str:
 def bagfile_information(
     bag_dir: Path,
     *,
-    topic_types: dict[str, str],
-    counts: dict[str, int],
+    topics: list[tuple[str, str, int]],
     start_ns: int | None,
     end_ns: int | None,
     custom: dict[str, str],
 ) -> dict:
-    """The `rosbag2_bagfile_information` of a bag of one MCAP file, as rosbag2 writes it."""
-    total = sum(counts.values())
+    """The `rosbag2_bagfile_information` of a bag of one MCAP file, as rosbag2 writes it;
+    `topics` = (name, type, message count) per channel, in the order they were registered."""
+    total = sum(count for _, _, count in topics)
     start = start_ns if start_ns is not None else 0
     duration = (end_ns - start_ns) if (start_ns is not None and end_ns is not None) else 0
     file_name = mcap_file_name(bag_dir)
@@ -143,9 +144,9 @@ def bagfile_information(
                     "offered_qos_profiles": [offered_qos(topic)],
                     "type_description_hash": type_hash(msg_type),
                 },
-                "message_count": counts.get(topic, 0),
+                "message_count": count,
             }
-            for topic, msg_type in topic_types.items()
+            for topic, msg_type, count in topics
         ],
         # Chunks are zstd-compressed inside the MCAP file; no rosbag2-level compression.
         "compression_format": "",
@@ -214,13 +215,14 @@ def read_bag_info(bag_dir: str | os.PathLike) -> BagInfo:
         if not isinstance(files, list) or not all(isinstance(p, str) for p in files):
             raise DatasetFormatError(f"{path}: relative_file_paths must be a list of file names, got {quoted(files)}")
         mcap_paths = tuple(bag_dir / Path(p).name for p in files)
-        topics = {}
+        topics, entries = {}, []
         for t in info["topics_with_message_count"] or []:
             name, msg_type = t["topic_metadata"]["name"], t["topic_metadata"]["type"]
             if not (isinstance(name, str) and isinstance(msg_type, str)):  # a type decides how a topic is read
                 raise DatasetFormatError(f"{path}: a topic's name and type must be text, got {quoted(name)} "
                                          f"of type {quoted(msg_type)}")
-            topics[name] = TopicInfo(name, msg_type, int(t["message_count"]))
+            entries.append(TopicInfo(name, msg_type, int(t["message_count"])))
+            topics.setdefault(name, entries[-1])
         version = int(info["version"])
         message_count = int(info["message_count"])
         start_ns = int(info["starting_time"]["nanoseconds_since_epoch"])
@@ -253,7 +255,8 @@ def read_bag_info(bag_dir: str | os.PathLike) -> BagInfo:
                         f"them after the ones it lists; `gscan-ros bag repair {bag_dir} --out NEW` writes a bag "
                         f"whose {METADATA_FILE} lists everything")
     return BagInfo(bag_dir, mcap_paths + tuple(unlisted), version, message_count, start_ns, duration_ns, topics,
-                   custom, counts_final=not unlisted, warnings=tuple(warnings), missing=missing)
+                   custom, counts_final=not unlisted, warnings=tuple(warnings), missing=missing,
+                   entries=tuple(entries))
 
 
 def _storage_order(path: Path) -> tuple[str, int]:

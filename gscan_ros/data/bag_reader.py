@@ -107,7 +107,7 @@ class BagEpisodeReader(Iterator[Episode]):
         )
         self._episodes = (r.episode for r in self.records())
         self._decode_observation: ObservationDecoder | None = None  # for the type of the bag's `/observation`
-        self.stacks = StackTopics({t.name: t.msg_type for t in self.info.topics.values()})
+        self.stacks = StackTopics((t.name, t.msg_type) for t in self.info.entries)
         self.dropped_keys: set[tuple[str, str, int]] = set()
 
     def __next__(self) -> Episode:

@@ -151,7 +151,7 @@ class _RepairCopier:
         topic = item[0].topic
         found = self.stacks.classify(topic, scan.msg_type(item[0]))
         if found is None or not self.stacks.is_stack(found[0]):
-            self._write(channel_id, topic, item)
+            self._write(channel_id, item)
             return
         namespace, name = found
         try:
@@ -173,7 +173,7 @@ class _RepairCopier:
                 self._count(value.outcome, self._splits.pop((namespace, value.episode_id), LIVE_SPLIT))
             elif value.outcome == es.REJECTED:  # a command refused before any episode began
                 self._count(value.outcome, None)
-        self._write(channel_id, topic, item)
+        self._write(channel_id, item)
 
     def _take(self, channel_id: int, item: tuple) -> None:
         """Format 1 (and bags that are not episode bags): an episode's messages are held from
@@ -184,7 +184,7 @@ class _RepairCopier:
             if self._pending is not None:
                 self._pending.append(entry)
             else:
-                self._write(*entry)
+                self._write(entry[0], entry[2])
             return
         if topic == COMMAND.name:
             self._drop()
@@ -201,7 +201,7 @@ class _RepairCopier:
         self._pending.append(entry)
         if topic == ACTION.name and self._is_eos(item[4]):
             for pending in self._pending:
-                self._write(*pending)
+                self._write(pending[0], pending[2])
             self._pending = None
             header = self._header or {}
             self._count(es.outcome_of(header.get("outcome", es.COMPLETE)), header.get("split"))
@@ -228,39 +228,34 @@ class _RepairCopier:
             if entry[1] in LEGACY_EPISODE_TOPICS:
                 self.dropped += 1
             else:
-                self._write(*entry)
+                self._write(entry[0], entry[2])
         self._pending = None
 
     def _channel(self, scan: "McapScan", path: Path, channel: Channel) -> int | None:
-        """Our channel id for a source channel (registered on first use), None if its type is unknown."""
+        """Our channel id for a source channel (one per topic and type, registered on first
+        use), None if its type is unknown."""
         key = (path, channel.id)
         channel_id = self._channels.get(key)
-        if channel_id is None:
-            channel_id = self.writer.channel_id(channel.topic)
-        if channel_id is None:
-            schema = scan.schemas.get(channel.schema_id)
-            if schema is not None:
-                msg_type, encoding, text = schema.name, schema.encoding, schema.data
-            else:  # its schema record was lost: the type from metadata.yaml or our topic table
-                topic = self.info.topics.get(channel.topic) or TOPICS.get(channel.topic)
-                if topic is None:
-                    return None
-                msg_type = topic.msg_type
-                try:
-                    encoding, text = SchemaEncoding.ROS2, message_definition(msg_type).encode()
-                except GscanError:  # not a ROS 2 Jazzy type
-                    return None
-            channel_id = self.writer.register_channel(
-                channel.topic,
-                msg_type,
-                schema=(encoding, text),
-                message_encoding=channel.message_encoding,
-                metadata=channel.metadata,
-            )
-        self._channels[key] = channel_id
+        if channel_id is not None:
+            return channel_id
+        schema = scan.schemas.get(channel.schema_id)
+        if schema is not None:
+            msg_type, encoding, text = schema.name, schema.encoding, schema.data
+        else:  # its schema record was lost: the type from metadata.yaml or our topic table
+            topic = self.info.topics.get(channel.topic) or TOPICS.get(channel.topic)
+            if topic is None:
+                return None
+            msg_type = topic.msg_type
+            try:
+                encoding, text = SchemaEncoding.ROS2, message_definition(msg_type).encode()
+            except GscanError:  # not a ROS 2 Jazzy type
+                return None
+        channel_id = self._channels[key] = self.writer.channel(
+            channel.topic, msg_type, schema=(encoding, text), message_encoding=channel.message_encoding,
+            metadata=channel.metadata)
         return channel_id
 
-    def _write(self, channel_id: int, topic: str, item: tuple) -> None:
+    def _write(self, channel_id: int, item: tuple) -> None:
         _, sequence, log_time, publish_time, data = item
-        self.writer.add_record(topic, channel_id, data, log_time, publish_time, sequence)
+        self.writer.add_record(channel_id, data, log_time, publish_time, sequence)
         self.messages += 1

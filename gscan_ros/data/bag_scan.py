@@ -318,10 +318,10 @@ class McapScan:
         return topic.msg_type if topic is not None else None
 
     def _fallback_channel(self, channel_id: int) -> Channel | None:
-        """A gscan_ros writer registers one channel per metadata.yaml topic, in that order."""
+        """A gscan_ros writer registers one channel per metadata.yaml topic entry, in that order."""
         if self._info is None or not self.library.startswith("gscan_ros"):
             return None
-        topics = list(self._info.topics.values())
+        topics = self._info.entries
         if not 1 <= channel_id <= len(topics):
             return None
         topic = topics[channel_id - 1]

@@ -96,9 +96,9 @@ class BagWriter:
         self._file = None
         self._mcap: McapWriter | None = None
         self._schemas: dict[str, int] = {}
-        self._channels: dict[str, int] = {}
-        self._topic_types: dict[str, str] = {}
-        self._counts: Counter[str] = Counter()
+        self._channels: dict[tuple[str, str], int] = {}  # (topic, type) -> channel id
+        self._channel_topics: dict[int, tuple[str, str]] = {}  # channel id -> (topic, type), registration order
+        self._counts: Counter[int] = Counter()  # messages per channel id
         self._splits: Counter[str] = Counter()
         self._start_ns: int | None = None
         self._end_ns: int | None = None
@@ -251,10 +251,7 @@ class BagWriter:
 
     def _write(self, topic: str, msg_type: str, data: bytes, t_ns: int, publish_ns: int | None = None) -> None:
         self._require_open()
-        channel_id = self._channels.get(topic)
-        if channel_id is None:
-            channel_id = self.register_channel(topic, msg_type)
-        self.add_record(topic, channel_id, data, t_ns, t_ns if publish_ns is None else publish_ns, 0)
+        self.add_record(self.channel(topic, msg_type), data, t_ns, t_ns if publish_ns is None else publish_ns, 0)
 
     @property
     def last_publish_ns(self) -> int:
@@ -262,17 +259,18 @@ class BagWriter:
         return self._last_publish_ns
 
     # -- channels and records (`bag repair` copies another bag's through these) ------------
-    def channel_id(self, topic: str) -> int | None:
-        """The channel registered for `topic`, if any."""
-        return self._channels.get(topic)
+    def channel(self, topic: str, msg_type: str, **kwargs) -> int:
+        """The channel of `topic` carrying `msg_type`, registered on first use (`register_channel`
+        with `kwargs`): a topic of two types (merged recordings) keeps a channel for each."""
+        channel_id = self._channels.get((topic, msg_type))
+        return self.register_channel(topic, msg_type, **kwargs) if channel_id is None else channel_id
 
-    def add_record(self, topic: str, channel_id: int, data: bytes, log_time: int, publish_time: int,
-                   sequence: int) -> None:
+    def add_record(self, channel_id: int, data: bytes, log_time: int, publish_time: int, sequence: int) -> None:
         """Append serialized message bytes on a registered channel, times and sequence as given."""
         self._mcap.add_message(channel_id, log_time=log_time, publish_time=publish_time, data=data, sequence=sequence)
         self._publish_ordered &= publish_time >= self._last_publish_ns
         self._last_publish_ns = max(self._last_publish_ns, publish_time)
-        self._counts[topic] += 1
+        self._counts[channel_id] += 1
         self._start_ns = log_time if self._start_ns is None else min(self._start_ns, log_time)
         self._end_ns = log_time if self._end_ns is None else max(self._end_ns, log_time)
 
@@ -306,8 +304,8 @@ class BagWriter:
                 "topic_type_hash": type_hash(msg_type),
             }
         channel_id = self._mcap.register_channel(topic, message_encoding, schema_id, metadata=dict(metadata))
-        self._channels[topic] = channel_id
-        self._topic_types[topic] = msg_type
+        self._channels[(topic, msg_type)] = channel_id
+        self._channel_topics[channel_id] = (topic, msg_type)
         return channel_id
 
     def _write_metadata(self, status: str) -> None:
@@ -316,8 +314,8 @@ class BagWriter:
     def _information(self, status: str) -> dict:
         return bagfile_information(
             self.bag_dir,
-            topic_types=self._topic_types,
-            counts=self._counts,
+            topics=[(topic, msg_type, self._counts[channel_id])
+                    for channel_id, (topic, msg_type) in self._channel_topics.items()],
             start_ns=self._start_ns,
             end_ns=self._end_ns,
             custom={

@@ -42,7 +42,7 @@ from __future__ import annotations
 import heapq
 import json
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterable, Iterator, Mapping, NamedTuple
+from typing import Any, Callable, Iterable, Iterator, NamedTuple
 
 from gscan_ros import episode_status as es
 from gscan_ros.data.bag_format import LIVE_SPLIT
@@ -76,19 +76,21 @@ class StackTopics:
     list and the channels as they are read (a killed recorder's metadata lacks some), and
     the namespaces that hold a stack (their topics include CORE_TOPICS)."""
 
-    def __init__(self, topics: Mapping[str, str]):
-        self._topics: dict[str, tuple[str, str] | None] = {}
+    def __init__(self, topics: Iterable[tuple[str, str]]):
+        self._topics: dict[tuple[str, str | None], tuple[str, str] | None] = {}
         self._names: dict[str, set[str]] = {}
-        for topic, msg_type in topics.items():
+        for topic, msg_type in topics:
             self.classify(topic, msg_type)
 
     def classify(self, topic: str, msg_type: str | None) -> tuple[str, str] | None:
-        """(namespace, relative name) of a stack topic, None for context (fixed at first sight)."""
-        if topic not in self._topics:
-            found = self._topics[topic] = stack_topic(topic, msg_type)
+        """(namespace, relative name) of a stack topic, None for context: by name and type, so
+        another node's topic of a stack topic's name (even on the same name) stays context."""
+        key = (topic, msg_type)
+        if key not in self._topics:
+            found = self._topics[key] = stack_topic(topic, msg_type)
             if found is not None:
                 self._names.setdefault(found[0], set()).add(found[1])
-        return self._topics[topic]
+        return self._topics[key]
 
     def is_stack(self, namespace: str) -> bool:
         return CORE_TOPICS <= self._names.get(namespace, set())

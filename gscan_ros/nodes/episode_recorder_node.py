@@ -150,10 +150,8 @@ class EpisodeRecorderNode(Node):
 
     def _write(self, endpoint: interface.Endpoint, data: bytes, info: dict) -> None:
         topic = endpoint.bag_topic
-        channel = self._writer.channel_id(topic)
-        if channel is None:
-            channel = self._writer.register_channel(topic, TOPICS[topic].msg_type)
-        self._writer.add_record(topic, channel, data, info["received_timestamp"], info["source_timestamp"], 0)
+        channel = self._writer.channel(topic, TOPICS[topic].msg_type)
+        self._writer.add_record(channel, data, info["received_timestamp"], info["source_timestamp"], 0)
 
     def _on_report(self, data: bytes, publish_ns: int) -> None:
         try:

@@ -1,6 +1,7 @@
 """`gscan-ros experiment` and `gscan-ros report`: a plan of tiny runs is trained,
 evaluated, skipped when done, resumed when killed, shared between workers; the report
 puts mean ± std over seeds beside the paper's figures, reproducibly."""
+import dataclasses
 import json
 import os
 import re
@@ -475,6 +476,23 @@ def test_a_finished_run_without_its_weights_is_stale(tmp_path):
     assert (state.status, state.detail) == ("stale", "no weights (model.pt) to re-check its results")
     (run / "model.pt").write_bytes(b"")
     assert run_state(run, spec, cfg, plan.data_root).status == "done"
+
+
+def test_a_finished_run_under_a_raised_budget_without_its_training_state_is_stale(tmp_path):
+    """Committed runs keep model.pt, not last.pt: a larger max_updates cannot resume them,
+    and training them again from update 0 would replace their results, so it waits for
+    --restart-stale instead of running as `new`."""
+    plan, spec, cfg, run = _finished_run(tmp_path)
+    (run / "model.pt").write_bytes(b"")
+    (run / "results.json").write_text(_results_of(spec, cfg))
+    assert run_state(run, spec, cfg, plan.data_root).status == "done"
+    more = dataclasses.replace(cfg, max_updates=cfg.max_updates * 2)
+    state = run_state(run, spec, more, plan.data_root)
+    assert (state.status, state.detail) == (
+        "stale", f"trained to {cfg.max_updates} of {more.max_updates} updates, without the training state (last.pt) "
+                 "to go on from")
+    (run / "last.pt").write_bytes(b"")  # with it, the run trains on
+    assert run_state(run, spec, more, plan.data_root).status == "resume"
 
 
 def test_results_of_other_weights_are_evaluated_again(tmp_path):

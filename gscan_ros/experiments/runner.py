@@ -210,6 +210,8 @@ class Runner:
             state = run_state(run_dir, spec, cfg, self.plan.data_root, ignore_lock=True)
             if state.status == "done":
                 return True
+            if state.status == "stale" and not self.restart_stale:  # it went stale while queued (another runner)
+                return False
             data_dir = self._dataset(spec.data)
             work = run_dir / RETRAIN if state.retrain or state.status == "stale" else run_dir
             if state.status in ("new", "resume", "stale"):

@@ -171,6 +171,12 @@ def _files_state(run_dir: Path, spec: RunSpec, cfg, data_root: Path) -> RunState
         state.status = "evaluate"
     elif RunFiles(run_dir).resume_point() is not None:
         state.status = "resume"
+    elif model.is_file() or any(e.get("event") == "end" for e in events):
+        # Finished to a smaller budget, its training state not kept (committed runs keep only
+        # model.pt): starting it over would replace its results, so only --restart-stale does.
+        state.status = "stale"
+        state.detail = (f"trained to {state.updates} of {cfg.max_updates} updates, without the training state "
+                        f"(last.pt) to go on from")
     elif state.updates:
         state.detail = f"no last.pt: starts over, these logged updates kept in {REPLACED}/"
     return state
@@ -244,9 +250,10 @@ def _evaluated(results: dict | None, spec: RunSpec, end: dict, model: Path) -> b
 
 def work_order(states: list[RunState]) -> list[RunState]:
     """Cheapest finish first: runs that only need evaluating, then half-trained ones, then
-    new ones (plan order within each), so a stop costs the least unfinished work and a
-    trained run's results never wait behind a whole training."""
-    rank = {"evaluate": 0, "resume": 1, "stale": 1, "new": 2}
+    new and stale ones, which both train from update 0 (plan order within each), so a stop
+    costs the least unfinished work and a trained run's results never wait behind a whole
+    training."""
+    rank = {"evaluate": 0, "resume": 1, "stale": 2, "new": 2}
     return sorted(states, key=lambda st: rank.get(st.status, 0))
 
 

@@ -495,6 +495,18 @@ def test_a_finished_run_under_a_raised_budget_without_its_training_state_is_stal
     assert run_state(run, spec, more, plan.data_root).status == "resume"
 
 
+def test_an_archived_attempt_takes_its_analyses_along(tmp_path):
+    """Files written beside a run (an analysis of its weights) go with the attempt they are of."""
+    from gscan_ros.experiments.state import archive_attempt
+
+    plan, spec, cfg, run = _finished_run(tmp_path)
+    (run / "think_accuracy.json").write_text("{}")
+    (run / ".lock").write_text("")
+    archive = archive_attempt(run)
+    assert sorted(p.name for p in archive.iterdir()) == ["config.yaml", "metrics.jsonl", "think_accuracy.json"]
+    assert sorted(p.name for p in run.iterdir()) == [".lock", ".replaced"]
+
+
 def test_results_of_other_weights_are_evaluated_again(tmp_path):
     """A run retrained by hand (`train --overwrite`) to the same update count keeps the old
     results.json; the weights' digest recorded in it tells them apart."""
@@ -543,6 +555,10 @@ BAD_PLANS = [
     ({"runs": [{"name": "x", "config": "nowhere.yaml", "data": "tiny", "seeds": [0]}]}, "runs[0].config"),
     ({"runs": [{"name": "x", "config": "{config}", "data": "tiny", "seeds": [0], "splits": ["target_lengths"]}]},
      "runs[0].splits"),
+    ({"runs": [{"name": "x", "config": "{config}", "data": "tiny", "seeds": [0], "splits": ["visual", "visual"]}]},
+     "runs[0].splits must be a list of distinct"),
+    ({"runs": [{"name": "x", "config": "{config}", "data": "tiny", "seeds": [0], "paper": ["semantic"]}]},
+     "runs[0].paper"),
     ({"datasets": {"tiny": {"k_shot": -1}}}, "datasets.tiny.k_shot"),
     ({"datasets": {"tiny": {"grid_size": 100}}}, "datasets.tiny: grid size 100 is not supported"),
     ({"datasets": {"tiny": {"percentage_dev": 1.5}}}, "datasets.tiny: percentage_train must be in (0, 1]"),
@@ -751,6 +767,25 @@ def test_report_puts_mean_and_std_beside_the_paper(results, tmp_path):
     assert "  - G k=10 (Seq2seq: the paper's figure, no run here): 40.00 vs 2.04, +37.96 (paper +34.87)" in text
     assert "![dev exact match vs updates, one panel per column](tables_curves.png)" in text
     assert (tmp_path / "tables_curves.png").read_bytes().startswith(b"\x89PNG")
+
+
+def test_a_cell_whose_seeds_differ_in_recipe_says_so(tmp_path):
+    """A recipe changed between seeds (the older seed stale, not yet retrained) would be
+    averaged silently; the report names the run and the keys. The seed, the seed screen and
+    the budget are no recipe."""
+    fake_run(tmp_path / "r", "semantic_s0", "semantic", 0, {"test": split("A", 90.0)})
+    fake_run(tmp_path / "r", "semantic_s1", "semantic", 1, {"test": split("A", 92.0)})
+    fake_run(tmp_path / "r", "semantic_s2", "semantic", 2, {"test": split("A", 94.0)})
+    (tmp_path / "r/semantic_s0/config.yaml").write_text("batch_size: 50\nseed: 0\nmax_dev_target_length: 14\n")
+    (tmp_path / "r/semantic_s1/config.yaml").write_text("batch_size: 50\nseed: 1\nscreen_seeds: 8\n"
+                                                          "max_updates: 80000\n")
+    (tmp_path / "r/semantic_s2/config.yaml").write_text("batch_size: 50\nseed: 2\n")
+    out = tmp_path / "tables.md"
+    assert report([tmp_path / "r"], out) == 0
+    notes = out.read_text().split("### Cells whose seeds were trained with different recipes")[1].split("###")[0]
+    assert notes.strip().splitlines() == [
+        "- Semantic: `semantic_s1` differs from `semantic_s0` in max_dev_target_length; the cell averages both.",
+        "- Semantic: `semantic_s2` differs from `semantic_s0` in max_dev_target_length; the cell averages both."]
 
 
 def test_a_variant_column_is_measured_against_its_paper_columns_budget(tmp_path):

@@ -189,13 +189,14 @@ def load_plan(path: str | Path, results: str | Path | None = None, data_root: st
             raise PlanError(f"{where}: {key}.seeds must be a list of distinct integers >= 0, got {quoted(seeds)}")
         column = _text(entry.get("column", name), where, f"{key}.column")
         paper = entry.get("paper", column if column in COLUMN_TITLES else None)
-        if paper is not None and paper not in COLUMN_TITLES:
+        if paper is not None and (not isinstance(paper, str) or paper not in COLUMN_TITLES):
             raise PlanError(f"{where}: {key}.paper must be one of {list(COLUMN_TITLES)}, got {quoted(paper)}")
         title = _text(entry.get("title", COLUMN_TITLES.get(column, column)), where, f"{key}.title")
         kind = datasets[data].split_kind
         splits = entry.get("splits", list(TEST_SPLITS[kind]))
-        if not (isinstance(splits, list) and splits and all(s in TEST_SPLITS[kind] for s in splits)):
-            raise PlanError(f"{where}: {key}.splits must be a list of {kind} test splits "
+        if not (isinstance(splits, list) and splits and all(isinstance(s, str) and s in TEST_SPLITS[kind]
+                                                            for s in splits)) or len(set(splits)) < len(splits):
+            raise PlanError(f"{where}: {key}.splits must be a list of distinct {kind} test splits "
                             f"{list(TEST_SPLITS[kind])}, got {quoted(splits)}")
         overrides = defaults + _overrides(entry.get("set") or {}, where, f"{key}.set")
         eval_max = _int(entry.get("max_eval_examples", max_examples), where, f"{key}.max_eval_examples", 0)

@@ -40,13 +40,13 @@ from gscan_ros.experiments.plan import DataRecipe, Plan, RunSpec, resolve_config
 from gscan_ros.experiments.state import (
     DATASET_DONE,
     LOCK,
+    PROMOTING,
     RETRAIN,
     STATES,
     ExperimentError,
     RunState,
     archive_attempt,
     dataset_state,
-    finished_end,
     promote_retrain,
     run_state,
     trained_updates,
@@ -56,7 +56,7 @@ from gscan_ros.experiments.state import (
 )
 from gscan_ros.outputs import replace_durably
 from gscan_ros.runtime import mkl_shim_env
-from gscan_ros.training.metrics_log import read_events
+from gscan_ros.training.metrics_log import finished_end, read_events
 from gscan_ros.user_files import file_sha256, read_json
 
 CLI = (sys.executable, "-m", "gscan_ros.cli")
@@ -214,6 +214,8 @@ class Runner:
                 return False
             data_dir = self._dataset(spec.data)
             work = run_dir / RETRAIN if state.retrain or state.status == "stale" else run_dir
+            if state.status == "stale":  # a new retrain: a marker a finished promotion left is no promotion
+                (run_dir / PROMOTING).unlink(missing_ok=True)
             if state.status in ("new", "resume", "stale"):
                 where = f", in {RETRAIN}/" if work != run_dir else ""
                 start = (f"from its last checkpoint, updates logged to {state.updates}"  # last.pt may be older

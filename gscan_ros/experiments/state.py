@@ -186,11 +186,11 @@ def archive_attempt(run_dir: Path, into: Path | None = None) -> Path | None:
     """Move an earlier attempt's files (a start whose checkpoints were lost, a stale run
     replaced by its retrain, or a retrain that went stale) into
     `<into>/.replaced/<UTC time>_<updates>upd/` (`into`: the run folder, default `run_dir`),
-    so a restart loses no logged curve or result; None when there is nothing to move."""
-    from gscan_ros.training.trainer import RunFiles
-
-    files = RunFiles(run_dir).existing() + [p for p in (run_dir / "results.json", run_dir / "train.log",
-                                                         run_dir / "evaluate.log") if p.exists()]
+    so a restart loses no logged curve or result; None when there is nothing to move.
+    Every file that is not hidden goes, the analyses written beside the run too (their
+    numbers are of the old weights)."""
+    files = sorted(p for p in run_dir.iterdir() if not p.name.startswith(".") and p.is_file()) \
+        if run_dir.is_dir() else []
     if not files:
         return None
     updates = trained_updates(read_events(run_dir / "metrics.jsonl"))
@@ -243,7 +243,7 @@ def _evaluated(results: dict | None, spec: RunSpec, end: dict, model: Path) -> b
         return False
     ev = results.get("evaluation") or {}
     sha = ev.get("checkpoint_sha256")
-    return (results.get("updates") == end["step"] and ev.get("splits") == list(spec.splits)
+    return (results.get("updates") == end["step"] and sorted(ev.get("splits") or ()) == sorted(spec.splits)
             and ev.get("max_examples") == spec.eval_max_examples
             and (sha is None or sha == file_sha256(model)))
 

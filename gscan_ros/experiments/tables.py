@@ -65,10 +65,12 @@ class Group:
         return f"{self.title}, {self.variant}" if self.variant else self.title
 
     def sort_key(self) -> tuple:
+        """The groups' order in the report: total, so it never rests on set order."""
         order = list(COLUMN_TITLES)
         rank = order.index(self.paper_column) if self.paper_column in order else len(order)
         cut = -int(self.variant[2:]) if self.variant.startswith("<=") else 0
-        return self.table, rank, self.column != self.paper_column, self.column, cut, self.variant
+        return (self.table, rank, self.column != self.paper_column, self.column, cut, self.variant,
+                self.paper_column or "", self.title)
 
 
 @dataclass
@@ -80,6 +82,7 @@ class RunResult:
     max_updates: int
     best_dev: float | None
     batch_size: int | None  # from the run's config.yaml (None: not there)
+    config: dict | None  # the run's config.yaml (None: not there, or unreadable)
     rows: dict[str, float]  # table row -> exact match %
     curve: list[tuple[int, float]]  # (update, dev exact match %) from metrics.jsonl
     lengths: dict[int, tuple[float, int]]  # split I runs: target length -> (correct, episodes), splits pooled
@@ -192,22 +195,27 @@ def _run_result(path: Path, doc: dict, metrics: dict) -> RunResult:
             if letter == "G" or k_shot == 1:
                 rows[g_row if letter == "G" else letter] = float(split["exact_match"])
     group = Group(table, doc["column"], variant, doc.get("paper_column"), doc["title"])
+    config = _config(path.parent / "config.yaml")
     failures = {split["letter"] or key: (split["examples"], split["failures"])
                 for key, split in splits.items() if split.get("failures") is not None}
     return RunResult(name=doc["run"], group=group, seed=doc["seed"], updates=doc["updates"],
                      max_updates=doc["max_updates"], best_dev=doc.get("best_dev_exact_match"),
-                     batch_size=_batch_size(path.parent / "config.yaml"), rows=rows, lengths=lengths,
+                     batch_size=_batch_size(config), config=config, rows=rows, lengths=lengths,
                      failures=failures, **metrics,
                      eval_max_examples=(doc.get("evaluation") or {}).get("max_examples") or 0)
 
 
-def _batch_size(config: Path) -> int | None:
-    """The batch size in a run's merged config.yaml (the runner writes it), if readable."""
+def _config(path: Path) -> dict | None:
+    """A run's merged config.yaml (the runner writes it), if readable."""
     try:
-        doc = read_yaml(config, f"config {str(config)!r}", ReportError)
+        doc = read_yaml(path, f"config {str(path)!r}", ReportError)
     except ReportError:
         return None
-    value = doc.get("batch_size") if isinstance(doc, dict) else None
+    return doc if isinstance(doc, dict) else None
+
+
+def _batch_size(config: dict | None) -> int | None:
+    value = (config or {}).get("batch_size")
     return int(value) if isinstance(value, int) else None
 
 
@@ -291,6 +299,27 @@ class Tables:
         self.runs = runs
         self.groups: list[Group] = sorted({r.group for r in runs}, key=Group.sort_key)
         self.members = {g: [r for r in runs if r.group == g] for g in self.groups}
+
+    def mixed_recipes(self) -> list[str]:
+        """One line per run whose recipe differs from its cell's first seed's (`config_changes`,
+        the runner's rule: the budget and the machine aside; the seed and the seed screen too,
+        which the selection rule places): such a cell mixes two recipes."""
+        from gscan_ros.training.config import ConfigError, TrainConfig, config_changes
+
+        lines = []
+        for g in self.groups:
+            members = [r for r in self.members[g] if r.config is not None]
+            for run in members[1:]:
+                try:
+                    ref = TrainConfig.from_dict({**members[0].config, "seed": run.config.get("seed", 0)})
+                    changed = config_changes(run.config, ref)
+                except (ConfigError, TypeError, ValueError):  # a config of keys since removed: not compared
+                    continue
+                changed = [k for k in changed if k not in ("screen_seeds", "screen_updates")]
+                if changed:
+                    lines.append(f"- {g.label}: `{run.name}` differs from `{members[0].name}` in "
+                                 f"{', '.join(changed)}; the cell averages both.")
+        return lines
 
     def table1_columns(self) -> list[tuple[str, str, str | None]]:
         """(column id, title, paper column) of the Table 1 groups, in order."""
@@ -538,7 +567,9 @@ def _examples_text(column: str, runs: list[RunResult]) -> str:
 
 
 def _notes(t: Tables) -> list[str]:
-    out = ["## Notes", "", "### Further from the paper than the paper's std", ""]
+    out = ["## Notes", "", "### Cells whose seeds were trained with different recipes", ""]
+    out += t.mixed_recipes() or ["None."]
+    out += ["", "### Further from the paper than the paper's std", ""]
     flagged = []
     for column, title, paper in t.table1_columns():
         for row in t.table1_rows():

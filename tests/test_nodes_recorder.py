@@ -335,3 +335,36 @@ def test_ctrl_c_mid_episode_closes_the_bag_with_the_episode_preempted(tmp_path):
     [record], report = read(tmp_path / "bag", include_incomplete=True)
     assert (record.outcome, record.episode.actions) == (es.PREEMPTED, (Action.TURN_LEFT,))
     assert report.complete and read_bag_info(tmp_path / "bag").closed
+
+
+def test_a_disk_that_refuses_writes_stops_the_bag_with_one_error_until_bag_dir_changes(recorder, tmp_path,
+                                                                                      monkeypatch):
+    """A full disk: the bag stops where it is (its ended episodes read back), the error is
+    reported once, not again for every message after it (the recorder's own error line is
+    one of them), and a new bag_dir records again from the current state."""
+    import errno
+
+    feed = Feed(recorder)
+    feed.joined()
+    feed.whole_episode(1)
+    errors, error = [], recorder.status.error
+    recorder.status.error = lambda text: (errors.append(text), error(text))
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(recorder._writer, "add_record", full)
+    feed.report(2, es.ACTIVE)
+    for _ in range(5):  # what follows, its own status line among it, is not written and not reported
+        feed(interface.STATUS, text_to_cdr(errors[-1]))
+        feed.act(Action.WALK)
+    assert len(errors) == 1 and errors[0].startswith(f"recording stopped: {tmp_path}/bag cannot be written "
+                                                      "(No space left on device)")
+    [first], _ = read(tmp_path / "bag")
+    assert first.episode.meta["episode_id"] == "/policy_node/1"
+    [result] = recorder.set_parameters(parameters(bag_dir=str(tmp_path / "second")))
+    assert result.successful
+    feed.whole_episode(3)
+    recorder.destroy_node()
+    [second], report = read(tmp_path / "second")
+    assert second.episode.meta["episode_id"] == "/policy_node/3" and report.complete

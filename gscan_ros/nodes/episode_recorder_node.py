@@ -52,6 +52,7 @@ class EpisodeRecorderNode(Node):
                                                             "is opened)"))
         self.status = StatusReporter(self, counters=lambda: {"episodes recorded": self.episodes})
         self._running: dict[str, es.EpisodeStatus] = {}  # ACTIVE reports in the current bag whose end has not come
+        self._failed: str | None = None  # why the current bag could not be written: nothing is recorded into it
         self._writer = self._open_bag(self._bag_path({}), {})
         self._next_writer: BagWriter | None = None  # opened by a bag_dir change, taken after the set
         self._seen: set[str] = set()  # topics heard from (ready once the world state is among them)
@@ -107,9 +108,14 @@ class EpisodeRecorderNode(Node):
             self._record_images(self.get_parameter("include_images").value)
         if self._next_writer is not None:
             old, self._writer, self._next_writer = self._writer, self._next_writer, None
-            self._stop_running(old, f"the recording moved to {self._writer.bag_dir}")
-            old.close()
-            self._write_latched()
+            if self._failed is None:
+                self._stop_running(old, f"the recording moved to {self._writer.bag_dir}")
+                old.close()
+            self._failed = None
+            try:
+                self._write_latched()
+            except OSError as exc:
+                self._fail(exc)
             self.status.info(f"closed {old.bag_dir} ({old.episodes_written} episodes); recording to "
                              f"{self._writer.bag_dir}")
 
@@ -137,9 +143,32 @@ class EpisodeRecorderNode(Node):
 
     @guarded
     def _record(self, endpoint: interface.Endpoint, data: bytes, info: dict) -> None:
-        self._write(endpoint, data, info)
-        if endpoint.latched:
+        if endpoint.latched:  # kept also while nothing is written: a new bag starts with it
             self._latched[endpoint.name] = (endpoint, data, info)
+        if self._failed is not None:  # the bag cannot be written: nothing until bag_dir changes
+            return
+        try:
+            self._write(endpoint, data, info)
+            self._take(endpoint, data, info)
+        except OSError as exc:
+            self._fail(exc)
+
+    def _fail(self, exc: OSError) -> None:
+        """The disk refused a write (full, gone, read-only): the bag stops where it is, read
+        back as a killed recorder's, and the error is reported once, not once per message
+        (its own status line would be the next message to fail)."""
+        self._failed = f"{exc.strerror or exc}"
+        self._running.clear()
+        try:
+            self._writer.abandon()
+        except OSError:
+            pass  # its file is closed all the same
+        self.status.error(f"recording stopped: {self._writer.bag_dir} cannot be written ({self._failed}); what it "
+                          f"holds reads back up to its last ended episode; set bag_dir to record again")
+
+    def _take(self, endpoint: interface.Endpoint, data: bytes, info: dict) -> None:
+        """What a recorded message tells the recorder: the world state is there, an episode
+        started or ended."""
         if endpoint.name not in self._seen:
             was_ready = self.ready
             self._seen.add(endpoint.name)
@@ -190,9 +219,10 @@ class EpisodeRecorderNode(Node):
 
     def destroy_node(self) -> None:
         try:
-            self._stop_running(self._writer, RECORDING_STOPPED)
+            if self._failed is None:
+                self._stop_running(self._writer, RECORDING_STOPPED)
         finally:
-            self._writer.close()
+            self._writer.close()  # nothing to do for a bag given up (`_fail`)
             super().destroy_node()
 
 

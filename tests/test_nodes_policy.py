@@ -456,8 +456,15 @@ def test_an_episode_whose_reply_never_comes_ends_aborted_after_step_timeout(prob
     assert told(reports)[1] == ("cut", "'walk to a red circle while spinning': no observation came within "
                                        "step_timeout=0.05 s after action 1")
     probe.spin_until(lambda: any("step_timeout=0.05 s" in s.data for s in status), what="the status line")
+    # A command before any new state is refused at once (the world may have taken that
+    # walk), not left waiting step_timeout for a reply that will not come.
+    node.on_graph(graph(), source_info())
+    probe.spin_until(lambda: len(reports) == 3, what="the refusal")
+    assert told(reports)[2][0] == "rejected" and "the world never replied to action 1 of episode" in told(reports)[2][1]
     node.on_observation(observation(2), source_info())  # the late reply starts nothing
     assert len(policy.seen) == 2
+    node.on_graph(graph(), source_info())  # with a state to start from, the next command is followed
+    assert len(policy.seen) == 3
 
 
 def test_torch_threads_0_gives_the_model_torchs_default_again(probe, monkeypatch):

@@ -119,6 +119,7 @@ class PolicyNode(Node):
         self._observation_ns = 0  # DDS source timestamp of the newest observation
         self._observation_header = None  # its stamp and frame, once one came
         self._sent_ns = -1  # when the last action the world replies to (not <eos>) left this node (-1: never)
+        self._lost_reply: str | None = None  # step_timeout ended an episode on this reply: no state to start from
         self._graph: CommandGraph | None = None  # the running episode's graph, None when idle
         self._graph_ns = 0  # DDS source timestamp of the running episode's graph
         self._steps = 0
@@ -186,6 +187,7 @@ class PolicyNode(Node):
         if reset_ns <= self._reset_ns:
             return  # this reset or a newer one was already taken
         self._reset_ns = reset_ns
+        self._lost_reply = None  # the new world's state comes next
         if self._observation_ns < reset_ns:
             self._observation = None  # the old world's state
         if self._graph is not None and self._graph_ns < reset_ns:
@@ -205,6 +207,11 @@ class PolicyNode(Node):
             return
         if self._graph is not None:
             self._end(es.PREEMPTED, f"a new command came after {self._steps} actions")
+        if self._lost_reply is not None and self._observation_ns <= self._sent_ns:
+            # The world's state is unknown (it may have taken that action): refused now, not after step_timeout.
+            self._refuse(f"not following {graph.command!r}: the world never replied to {self._lost_reply} "
+                         f"(step_timeout); call reset_world, or let the world publish its state, first")
+            return
         self._take_next_policy()
         try:
             self._check_grid(self._observation)
@@ -229,6 +236,7 @@ class PolicyNode(Node):
         # with the reason instead of waiting for a state it can use.
         # A writable copy (the decoded view is read-only, which torch warns about).
         self._observation, self._observation_ns = cdr_to_observation(data).copy(), info["source_timestamp"]
+        self._lost_reply = None
         self._observation_header = image_header(data)  # the maps computed from it show its state
         try:
             self._check_grid(self._observation)
@@ -248,6 +256,8 @@ class PolicyNode(Node):
         if self._graph is None or not timeout or time.monotonic() - self._waiting_since < timeout:
             return
         after = f"action {self._steps - 1}" if self._steps else "the episode started"
+        if self._steps and self._observation_ns <= self._sent_ns:
+            self._lost_reply = f"action {self._steps - 1} of episode {self._episode.episode_id}"
         self._force_eos(f"no observation came within step_timeout={timeout:g} s after {after}")
 
     def _check_grid(self, observation: np.ndarray | None) -> None:

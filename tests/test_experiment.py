@@ -507,6 +507,24 @@ def test_an_archived_attempt_takes_its_analyses_along(tmp_path):
     assert sorted(p.name for p in run.iterdir()) == [".lock", ".replaced"]
 
 
+def test_a_done_run_takes_the_labels_the_plan_gives_it_now(tmp_path, capsys):
+    """A column renamed in the plan reaches the report without retraining: the runner
+    writes the plan's labels into a done run's results.json (and --dry-run changes nothing)."""
+    plan, spec, cfg, run = _finished_run(tmp_path)
+    (run / "model.pt").write_bytes(b"")
+    (run / "results.json").write_text(json.dumps({**json.loads(_results_of(spec, cfg)), "title": "Old name",
+                                                  "column": spec.column, "paper_column": spec.paper_column}))
+    path = write_plan(tmp_path / "plan.yaml", tmp_path, runs=[
+        {"name": "semantic", "config": str(REPO / "configs/semantic.yaml"), "data": "tiny", "seeds": [0],
+         "splits": SPLITS, "title": "Semantic, renamed"}])
+    assert experiment(path, "--dry-run") == 0
+    assert json.loads((run / "results.json").read_text())["title"] == "Old name"
+    assert experiment(path) == 0
+    assert json.loads((run / "results.json").read_text())["title"] == "Semantic, renamed"
+    assert "semantic_s0: labels set from the plan (column 'semantic', title 'Semantic, renamed')" in \
+        capsys.readouterr().out
+
+
 def test_results_of_other_weights_are_evaluated_again(tmp_path):
     """A run retrained by hand (`train --overwrite`) to the same update count keeps the old
     results.json; the weights' digest recorded in it tells them apart."""

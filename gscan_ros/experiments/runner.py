@@ -158,6 +158,9 @@ class Runner:
         for line in self.status_lines(states):
             self.echo(line)
         outcome = Outcome(done=[st.spec.name for st in states if st.status == "done"])
+        for st in states:
+            if st.status == "done":
+                self._relabel(st.spec)
         todo = []
         for st in work_order(states):
             if st.status == "running" or (st.status == "stale" and not self.restart_stale):
@@ -191,6 +194,26 @@ class Runner:
         pool.shutdown(wait=True)
         bar.close()
         return outcome
+
+    def _relabel(self, spec: RunSpec) -> None:
+        """A done run's labels follow the plan (`column`, `title`, `paper`): the report reads
+        them from results.json, and an entry renamed in the plan needs no retraining."""
+        run_dir = self.run_dir(spec)
+        path = run_dir / "results.json"
+        want = {"column": spec.column, "title": spec.title, "paper_column": spec.paper_column}
+        doc = read_json(path, str(path), ExperimentError)
+        if all(doc.get(key) == value for key, value in want.items()):
+            return
+        lock = FileLock(run_dir / LOCK)
+        if not lock.acquire():
+            return
+        try:
+            tmp = run_dir / "results.json.tmp"
+            tmp.write_text(json.dumps({**doc, **want}, indent=2) + "\n")
+            replace_durably(tmp, path)
+        finally:
+            lock.release()
+        self.echo(f"{spec.name}: labels set from the plan (column {spec.column!r}, title {spec.title!r})")
 
     def _updates(self) -> int:
         """Updates trained so far over the share (each run counted up to its budget)."""

@@ -11,7 +11,7 @@ STAMP := $(VENV)/.installed
 WORDNET := /usr/share/wordnet/data.noun
 MKL_SHIM := $(VENV)/lib/libgscan_mkl_intel_cpu.so
 
-# DDS stays on loopback (mandatory on these machines); a distinct domain per run.
+# DDS stays on loopback; a distinct domain per run.
 export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 export ROS_DOMAIN_ID ?= 57
 export PYTHONUNBUFFERED := 1

@@ -7,11 +7,11 @@ import sys
 from pathlib import Path
 
 import pytest
+from experiment_support import write_plan
 
 from gscan_ros import runtime
 from gscan_ros.experiments import locks, plan, runner
 from gscan_ros.runtime import MKL_SHIM, cpu_vendor, mkl_shim_env
-from tests.test_experiment import write_plan
 
 SOURCE = Path(runtime.__file__).with_name("mkl_intel_cpu.c")
 

@@ -59,7 +59,7 @@ class BagSum(torch.autograd.Function):
     sparse product: the [weights, bags] incidence of the rows times the bags' gradient.
     torch's own backward (`_embedding_bag_dense_backward`) sorts the rows and adds one
     gradient row per entry, ~2.3x slower on the per-cell bags of a 12x12 update (~330k
-    entries of 150 features: docs/results.md, "Sparse encoder on 12x12")."""
+    entries of 150 features: docs/results.md, "Sparse encoder on 12×12 (split I)")."""
 
     @staticmethod
     def forward(ctx, rows: torch.Tensor, weight: torch.Tensor, starts: torch.Tensor) -> torch.Tensor:

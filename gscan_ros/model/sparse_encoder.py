@@ -24,7 +24,7 @@ from torch import nn
 from gscan_ros.model.fast_ops import BagSum, ReluDrop, RowGather, keep_mask
 
 # Training on grids this wide or wider uses per-cell canvas bags instead of the Toeplitz
-# matrix (docs/results.md, "Sparse encoder on 12x12": equal at 6x6 with 50 episodes).
+# matrix (docs/results.md, "Sparse encoder on 12×12 (split I)": equal at 6x6 with 50 episodes).
 PER_CELL_MIN_GRID = 8
 
 

@@ -246,6 +246,24 @@ def test_any_exception_in_reset_world_is_a_failed_response_not_a_dead_node(probe
     probe.spin_until(lambda: len(observations) == 2, what="a reply after the failed reset")
 
 
+def test_a_bug_every_call_hits_logs_its_traceback_once_and_a_status_line_each_time(probe, world, monkeypatch):
+    """A flood of messages that all hit one bug must not write a traceback per message."""
+    node, _, status = world
+    logged = []
+    logger = node.get_logger()
+    monkeypatch.setattr(logger, "error", lambda text, *a, **k: logged.append(text))
+
+    def exhausted():
+        raise MemoryError("no room for the next situation")
+
+    node._source.next = exhausted
+    for _ in range(5):
+        assert not call_reset(probe).success
+    assert sum("Traceback" in line for line in logged) == 1
+    probe.spin_until(lambda: sum("internal error in on_reset_world" in s.data for s in status) == 5,
+                     what="a status line per call")
+
+
 def test_each_load_publishes_its_reset_time_before_the_new_state(probe, world):
     node, observations, _ = world
     resets = probe.record("world_reset", Header, LATCHED_LOG_QOS, raw=True)

@@ -81,6 +81,7 @@ VIEWER_LOG_QOS = qos_profile(interface.VIEWER, depth=interface.LOG_DEPTH)
 
 ECHO_CHARS = 60  # how much of a rejected input a status line quotes
 STATUS_CHARS = 300  # longest status line
+MAX_TRACED = 64  # places whose first traceback a node logs (there are fewer in the code)
 WARNING_INTERVAL_S = 1.0  # at most one rejection warning per interval in the log
 DIAGNOSTICS_PERIOD_S = 1.0  # the diagnostic_updater rate
 HARDWARE_ID = "gscan_ros"  # a DiagnosticStatus's hardware_id: these nodes drive no device
@@ -165,6 +166,7 @@ class StatusReporter:
         self._unlogged = 0
         self._level, self._message = DiagnosticStatus.OK, "started"
         self._rejected = self._errors = 0
+        self._traced: set[tuple[str, str]] = set()  # (where, exception type) whose traceback was logged
         node.create_timer(DIAGNOSTICS_PERIOD_S, self.publish_diagnostics)
 
     @property
@@ -185,6 +187,18 @@ class StatusReporter:
         """A bug in gscan_ros caught in a callback: the node serves on (ERROR)."""
         self._errors += 1
         self._log_throttled(self._publish(text, DiagnosticStatus.ERROR), self._node.get_logger().error)
+
+    def internal_error(self, exc: BaseException, where: str, context: str = "") -> str:
+        """A bug caught in `where`: its traceback is logged the first time it happens there
+        (a bug every message hits would otherwise log one per message), and a short line,
+        after `context`, goes to `status` every time (`error`). Returns that line's text."""
+        key = (where, type(exc).__name__)
+        if key not in self._traced and len(self._traced) < MAX_TRACED:
+            self._traced.add(key)
+            self._node.get_logger().error("".join(traceback.format_exception(exc)))
+        text = f"{context}internal error in {where}: {type(exc).__name__}: {exc}"
+        self.error(text)
+        return text
 
     def publish_diagnostics(self) -> None:
         if not self._node.context.ok():  # shut down (Ctrl-C) before the node is destroyed
@@ -240,8 +254,7 @@ def report_failure(node: Node, exc: Exception, where: str, context: str = "") ->
     if isinstance(exc, GscanError):
         node.status.reject(f"{context}{exc}")
         return
-    node.get_logger().error("".join(traceback.format_exception(exc)))
-    node.status.error(f"internal error in {where}: {type(exc).__name__}: {exc}")
+    node.status.internal_error(exc, where)
 
 
 def guarded(callback: CallbackT) -> CallbackT:
@@ -273,13 +286,11 @@ def guarded_trigger(failure: str) -> Callable[[CallbackT], CallbackT]:
             try:
                 return callback(self, request, response)
             except GscanError as exc:
-                report, reason = self.status.reject, str(exc)
+                response.success, response.message = False, f"{failure}: {exc}"
+                self.status.reject(response.message)
             except Exception as exc:  # noqa: BLE001 - a node must survive its own bugs
-                self.get_logger().error(traceback.format_exc())
-                report = self.status.error
-                reason = f"internal error in {callback.__name__}: {type(exc).__name__}: {exc}"
-            response.success, response.message = False, f"{failure}: {reason}"
-            report(response.message)
+                response.success = False
+                response.message = self.status.internal_error(exc, callback.__name__, context=f"{failure}: ")
             return response
 
         return guarded_callback  # type: ignore[return-value]

@@ -399,6 +399,27 @@ def test_repairing_a_format_1_bag_keeps_its_format_and_its_episodes(tmp_path):
     assert list(iter_bag_episodes(tmp_path / "copy")) == expected
 
 
+def test_repairing_a_format_1_bag_leaves_out_the_episodes_its_reader_drops(episodes, tmp_path):
+    """A bad action token and a plain-text `/command` cost their episodes in the reader; the
+    repaired bag leaves them out, so it reads the same episodes and nothing is lost."""
+    from bag_support import legacy_bag, write_legacy_episode
+
+    source = tmp_path / "v1"
+    with legacy_bag(source) as writer:
+        write_legacy_episode(writer, episodes[0], 0)
+        write_legacy_episode(writer, episodes[1], 1, tokens=["walk", "jump", "<eos>"])
+        writer.write_message("/command", interface.COMMAND.type, text_to_cdr("walk to a red circle"), 2 * S)
+        writer.write_message("/action", interface.ACTION.type, text_to_cdr("<eos>"), 2 * S + STEP_NS)
+        write_legacy_episode(writer, episodes[2], 3)
+    reader = iter_bag_episodes(source)
+    assert list(reader) == [episodes[0], episodes[2]]
+    assert reader.report.drop_reasons == {"a bad /action message": 1, "a /command with no episode header": 1}
+    result = repair_bag(source, tmp_path / "repaired")
+    assert result.episodes == 2 and result.source.drop_reasons == reader.report.drop_reasons
+    again = iter_bag_episodes(tmp_path / "repaired")
+    assert list(again) == [episodes[0], episodes[2]] and again.report.complete
+
+
 def test_repair_copies_another_nodes_topic_that_shares_a_stack_topics_name(episodes, tmp_path):
     """`ros2 bag record -a` also takes other nodes' topics; one named `/status` but of another
     type is no stack topic to the reader, and repair copies it as it is."""

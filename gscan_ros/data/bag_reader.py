@@ -70,6 +70,7 @@ class _OpenEpisode:
     graph_json: str | None = None
     outcome: str = es.COMPLETE  # header "outcome" (format 1 knew "aborted" only)
     damage: str | None = None  # a bad message of its own: it is dropped for this reason
+    index: int = -1  # its `/command`'s place among the bag's `/command` messages
 
 
 class BagEpisodeReader(Iterator[Episode]):
@@ -108,7 +109,9 @@ class BagEpisodeReader(Iterator[Episode]):
         self._episodes = (r.episode for r in self.records())
         self._decode_observation: ObservationDecoder | None = None  # for the type of the bag's `/observation`
         self.stacks = StackTopics((t.name, t.msg_type) for t in self.info.entries)
-        self.dropped_keys: set[tuple[str, str, int]] = set()
+        self.dropped_keys: set[tuple[str, str, int]] = set()  # format 2: (namespace, report id, start)
+        self.dropped_commands: set[int] = set()  # format 1: the n-th `/command`s whose complete episode was dropped
+        self._commands = 0
 
     def __next__(self) -> Episode:
         return next(self._episodes)
@@ -230,6 +233,7 @@ class BagEpisodeReader(Iterator[Episode]):
             if topic == COMMAND.name:
                 self._drop(current, "a new episode started before its <eos>")
                 current = self._start(path, data)
+                current.index, self._commands = self._commands, self._commands + 1
                 continue
             if current is None:  # between episodes: only episode topics count as lost data
                 self.report.discarded_messages += topic in LEGACY_EPISODE_TOPICS
@@ -257,16 +261,16 @@ class BagEpisodeReader(Iterator[Episode]):
                     continue
                 done, current = current, None
                 if done.header is None:  # a command typed as plain text: no situation to follow it from
-                    self._drop(done, "a /command with no episode header")
+                    self._drop(done, "a /command with no episode header", ended=True)
                     continue
                 if done.damage is not None:
-                    self._drop(done)
+                    self._drop(done, ended=True)
                     continue
                 wanted = done.selected and (done.outcome == es.COMPLETE or self.include_incomplete)
                 try:
                     record = self._finish(path, done, graphs) if wanted else None
                 except _Unusable as exc:  # it costs the episode, not the bag
-                    self._drop(done, str(exc))
+                    self._drop(done, str(exc), ended=True)
                     continue
                 if done.outcome == es.COMPLETE:
                     self.report.episodes_read += 1
@@ -306,11 +310,16 @@ class BagEpisodeReader(Iterator[Episode]):
         selected = self.splits is None or header.get("split") in self.splits
         return _OpenEpisode(header=header, selected=selected, outcome=outcome)
 
-    def _drop(self, episode: _OpenEpisode | None, reason: str | None = None) -> None:
-        """`episode` (if any) cannot be read back: for its own bad message, else for `reason`."""
+    def _drop(self, episode: _OpenEpisode | None, reason: str | None = None, *, ended: bool = False) -> None:
+        """`episode` (if any) cannot be read back: for its own bad message, else for `reason`.
+        One that `ended` (its `<eos>` came) is recorded in `dropped_commands` for `bag repair`,
+        which leaves it out; the others are cut by what it sees itself (lost data, the next
+        `/command`, the end of the bag)."""
         if episode is not None:
             self.report.count_drop(episode.damage or reason)
             self.report.discarded_messages += episode.messages
+            if ended:
+                self.dropped_commands.add(episode.index)
 
     def _bad(self, episode: _OpenEpisode, topic: str, detail: str) -> None:
         """A message of `episode` that cannot be read: counted, and the episode is dropped at its end."""

@@ -107,6 +107,8 @@ class _RepairCopier:
         self.writer = writer
         self.stacks = reader.stacks  # format 2: the stack topics, as the reader found them
         self.dropped_keys = reader.dropped_keys  # format 2: the episodes it could not assemble
+        self.dropped_commands = reader.dropped_commands  # format 1: the episodes it dropped at their <eos>
+        self._commands = 0  # format 1: `/command` messages seen
         self.decode = live_decoder(GraphCache(), reader.observation)
         self.source_summary = reader.report.summary()
         # Pieces of episodes matter only in episode bags (any other bag: copy everything).
@@ -117,6 +119,7 @@ class _RepairCopier:
         self._started: set[tuple[str, str, int]] = set()  # format 2: the episodes whose ACTIVE report was written
         self._splits: dict[tuple[str, str], str] = {}  # format 2: (namespace, report id) -> split, from `/episode`
         self._pending: list[tuple] | None = None  # format 1: the open episode's (channel id, topic, message)
+        self._index = -1  # format 1: the open episode's place among the `/command` messages
         self._header: dict | None = None
         self._eos: dict[bytes, bool] = {}
         self._channels: dict[tuple[Path, int], int] = {}  # (file, source channel id) -> our id
@@ -189,6 +192,7 @@ class _RepairCopier:
         if topic == COMMAND.name:
             self._drop()
             self._pending = [entry]
+            self._index, self._commands = self._commands, self._commands + 1
             try:
                 header = json.loads(cdr_to_text(item[4]))
             except Exception:  # noqa: BLE001 - a plain-text (or undecodable) command: no header
@@ -200,6 +204,9 @@ class _RepairCopier:
             return
         self._pending.append(entry)
         if topic == ACTION.name and self._is_eos(item[4]):
+            if self._index in self.dropped_commands:  # an episode the reader drops (a bad message, no header)
+                self._drop()
+                return
             for pending in self._pending:
                 self._write(pending[0], pending[2])
             self._pending = None
@@ -221,7 +228,8 @@ class _RepairCopier:
         return eos
 
     def _drop(self) -> None:
-        """Format 1: lost data cut the open episode: keep its other topics' messages, leave out its own."""
+        """Format 1: lost data cut the open episode, or the reader dropped it: keep its other
+        topics' messages, leave out its own."""
         if self._pending is None:
             return
         for entry in self._pending:

@@ -233,7 +233,6 @@ class BagEpisodeReader(Iterator[Episode]):
             if topic == COMMAND.name:
                 self._drop(current, "a new episode started before its <eos>")
                 current = self._start(path, data)
-                current.index, self._commands = self._commands, self._commands + 1
                 continue
             if current is None:  # between episodes: only episode topics count as lost data
                 self.report.discarded_messages += topic in LEGACY_EPISODE_TOPICS
@@ -289,6 +288,12 @@ class BagEpisodeReader(Iterator[Episode]):
 
     # -- episode assembly ---------------------------------------------------------------
     def _start(self, path: Path, data: bytes) -> _OpenEpisode:
+        """The episode a `/command` starts, numbered among the bag's `/command`s."""
+        episode = self._open_episode(path, data)
+        episode.index, self._commands = self._commands, self._commands + 1
+        return episode
+
+    def _open_episode(self, path: Path, data: bytes) -> _OpenEpisode:
         try:
             header = json.loads(cdr_to_text(data))
         except GscanError as exc:  # no String: the episode it starts is lost with it

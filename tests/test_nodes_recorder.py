@@ -321,8 +321,9 @@ def test_the_bag_being_recorded_is_refused_as_a_new_bag_dir(recorder, tmp_path):
 
 
 def test_ctrl_c_mid_episode_closes_the_bag_with_the_episode_preempted(tmp_path):
-    """rclpy's SIGINT handler shuts the context down before the node is destroyed: the
-    recorder cannot publish its last status lines then, and still closes a whole bag."""
+    """A context shut down before the node is destroyed (rclpy's own SIGINT handler does
+    that; `run` does not): the recorder cannot publish its last status lines then, and
+    still closes a whole bag."""
     context = rclpy.Context()
     rclpy.init(context=context, domain_id=fresh_domain_id())
     recorder = EpisodeRecorderNode(context=context, parameter_overrides=parameters(bag_dir=str(tmp_path / "bag")))

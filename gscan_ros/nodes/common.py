@@ -7,10 +7,13 @@ them into rclpy QoSProfiles.
 """
 from __future__ import annotations
 
+import contextlib
 import functools
 import importlib
 import logging
+import signal
 import sys
+import threading
 import time
 import traceback
 from collections.abc import Callable
@@ -20,9 +23,10 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException
+from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
 from std_msgs.msg import Header, String
 
 from gscan_ros import interface
@@ -301,17 +305,55 @@ def guarded_trigger(failure: str) -> Callable[[CallbackT], CallbackT]:
 NodeT = TypeVar("NodeT", bound=Node)
 
 
+STOP_POLL_S = 0.1  # how soon a spin loop notices a stop request (a signal is handled between waits)
+
+
+@contextlib.contextmanager
+def stop_requests() -> "contextlib.AbstractContextManager[threading.Event]":
+    """SIGINT and SIGTERM set the event it yields instead of raising KeyboardInterrupt in
+    whatever callback runs, so a callback always finishes: a recorder never leaves a chunk
+    half written, a world never half a step. A second signal raises KeyboardInterrupt,
+    for a node stuck in a callback. Main thread only (Python's rule for signal handlers);
+    rclpy must be initialised with `SignalHandlerOptions.NO`, or its own handler shuts
+    the context down first and chains to the one that raises."""
+    requested = threading.Event()
+
+    def on_signal(signum, frame) -> None:
+        if requested.is_set():
+            raise KeyboardInterrupt
+        requested.set()
+
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield requested
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def spin_until(executor: Executor, stop: threading.Event) -> None:
+    """Spin `executor` until `stop` is set or its context shuts down."""
+    while not stop.is_set() and executor.context.ok():
+        executor.spin_once(timeout_sec=STOP_POLL_S)
+
+
 def run(node_factory: Callable[[], NodeT], args: list[str] | None = None) -> int:
     """`main()` of a node executable: init, spin until SIGINT/SIGTERM, clean up.
 
+    The signal ends the spin between callbacks (`stop_requests`); the node is destroyed
+    while its context is still up, so what it does on the way out (a recorder's last
+    reports and bag summary) is published and written.
     A configuration error (bad parameter, missing checkpoint) is one line on stderr and
     exit status 1, like the `gscan-ros` CLI.
     """
-    rclpy.init(args=args)
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     try:
-        node = node_factory()
-        rclpy.spin(node)
+        with stop_requests() as stop:
+            node = node_factory()
+            executor = SingleThreadedExecutor()
+            executor.add_node(node)
+            spin_until(executor, stop)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except (GscanError, ParameterException) as exc:  # a bad parameter value: one line, like the CLI

@@ -39,9 +39,9 @@ class StackOptions:
 class Stack:
     """The nodes of one stack in rclpy's default context, spun by a MultiThreadedExecutor.
 
-    Use as a context manager; `spin()` blocks (Ctrl-C returns), `start()` spins in a
+    Use as a context manager; `spin()` blocks until SIGINT/SIGTERM, `start()` spins in a
     background thread (the demo). Leaving the context destroys the nodes, which closes
-    the recorder's bag.
+    the recorder's bag. Signals never interrupt a callback (`common.stop_requests`).
     """
 
     def __init__(self, options: StackOptions):
@@ -52,8 +52,9 @@ class Stack:
     def __enter__(self) -> "Stack":
         import rclpy
         from rclpy.executors import MultiThreadedExecutor
+        from rclpy.signals import SignalHandlerOptions
 
-        rclpy.init()
+        rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
         try:
             self.nodes = self._build()
         except BaseException:
@@ -93,17 +94,25 @@ class Stack:
         return next(n for n in self.nodes if isinstance(n, cls))
 
     def spin(self) -> None:
+        """Spin until SIGINT or SIGTERM (from the main thread); a second signal raises KeyboardInterrupt."""
+        from gscan_ros.nodes.common import spin_until, stop_requests
+
+        with stop_requests() as stop:
+            spin_until(self.executor, stop)
+
+    def start(self) -> None:
+        """Spin in a background thread (the caller drives the stack, e.g. with a GscanCommander)
+        until the stack is left; Ctrl-C reaches the caller's thread as KeyboardInterrupt."""
+        self._thread = threading.Thread(target=self._spin_in_background, name="gscan-stack", daemon=True)
+        self._thread.start()
+
+    def _spin_in_background(self) -> None:
         from rclpy.executors import ExternalShutdownException
 
         try:
             self.executor.spin()
-        except (KeyboardInterrupt, ExternalShutdownException):
+        except ExternalShutdownException:
             pass
-
-    def start(self) -> None:
-        """Spin in a background thread (the caller drives the stack, e.g. with a GscanCommander)."""
-        self._thread = threading.Thread(target=self.spin, name="gscan-stack", daemon=True)
-        self._thread.start()
 
     def wait_until_recording(self, timeout: float = 30.0) -> None:
         """With a recorder: wait until it has the world state, so the next episode is recorded."""

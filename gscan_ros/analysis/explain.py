@@ -234,8 +234,7 @@ class Reading:
 def step0_readings(policy: Policy, episodes: Sequence[Episode], batch_size: int = 512) -> list[Reading]:
     """Every episode's initial state through the model, `batch_size` at a time."""
     require_attention(policy)
-    for ep in episodes:
-        policy.require_grid(ep.situation.grid_size, f"episode {ep.example_id} of split {ep.split!r}")
+    policy.require_episodes_grid(episodes)
     policy.model.eval()
     readings = []
     for start in range(0, len(episodes), batch_size):

@@ -104,6 +104,11 @@ class Policy:
             raise GscanError(f"{what} is on a {grid_size}x{grid_size} grid; the model was trained on "
                              f"{self.grid_size}x{self.grid_size}")
 
+    def require_episodes_grid(self, episodes) -> None:
+        """`require_grid` for every episode, named by example and split."""
+        for ep in episodes:
+            self.require_grid(ep.situation.grid_size, f"episode {ep.example_id} of split {ep.split!r}")
+
     @property
     def observation_shape(self) -> tuple[int, int, int]:
         """(G, G, 16): the observations the model was trained on."""

@@ -176,8 +176,7 @@ def evaluate_episodes(model_or_policy, episodes: Sequence[Episode], batch_size: 
     gets all predictions back in order, bit for bit the single-process result; the other
     ranks get None."""
     policy = model_or_policy if isinstance(model_or_policy, Policy) else Policy(model_or_policy, parser)
-    for ep in episodes:
-        policy.require_grid(ep.situation.grid_size, f"episode {ep.example_id} of split {ep.split!r}")
+    policy.require_episodes_grid(episodes)
     was_training = policy.model.training
     policy.model.eval()
     mine = shard_of(range(0, len(episodes), batch_size), ranks)

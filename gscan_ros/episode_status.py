@@ -30,7 +30,9 @@ LEGACY_OUTCOMES = {"aborted": PREEMPTED}
 class EpisodeStatus:
     """One report of the policy on an episode: it started, or how it ended."""
 
-    episode_id: str  # unique per policy: "<node name>/<n>"; a generated bag's "<episode number>"
+    # "<node name>/<n>", n from 1 each time the node starts (unique with start_ns, as a
+    # GoalID); a generated bag's "<episode number>"
+    episode_id: str
     start_ns: int  # when the policy took the episode's command graph (its goal stamp)
     outcome: str  # ACTIVE or one of ENDINGS
     text: str = ""  # for people: the command, or why it ended

@@ -1,5 +1,7 @@
 """Parameters changed on running nodes through their parameter services (`ros2 param set`) take
 effect; bad values are refused with a reason and change nothing."""
+from pathlib import Path
+
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
 
@@ -42,18 +44,29 @@ def test_max_steps_set_on_a_running_policy_node_caps_the_next_episode(probe, com
 
 
 def test_bad_values_are_refused_with_the_reason(probe, commander, checkpoint, tmp_path):
-    stack = in_process_stack(probe, checkpoint, [Action.EOS])
+    stack = in_process_stack(probe, checkpoint, [Action.EOS], bag_dir=tmp_path / "bag")
     missing = str(tmp_path / "missing.pt")
+    (tmp_path / "empty.txt").touch()
+    (tmp_path / "a_file").touch()
+    dataset = str(Path(__file__).parent / "fixtures" / "released_format.txt")
+    assert set_parameters(commander, "world_simulator_node", split="nosuchsplit")[0].successful  # no dataset yet
     for node_name, values, reason in (
         ("policy_node", {"checkpoint": missing}, "does not exist"),
+        ("policy_node", {"checkpoint": str(tmp_path)}, "is a directory, not a checkpoint file"),
         ("policy_node", {"device": "tpu"}, "device must be one of"),
         ("parser_node", {"checkpoint": missing}, "does not exist"),
         ("parser_node", {"parser": "bogus"}, "parser must be empty or one of"),
         ("world_simulator_node", {"dataset": str(tmp_path / "none.txt")}, "does not exist"),
+        # Opened when set, not at the next reset_world (which would fail until it is fixed):
+        ("world_simulator_node", {"dataset": str(tmp_path / "empty.txt")}, "empty.txt"),
+        ("world_simulator_node", {"dataset": dataset}, "no examples in split(s) nosuchsplit"),
+        # A path that cannot be created is the user's problem, not an internal error:
+        ("episode_recorder_node", {"bag_dir": str(tmp_path / "a_file" / "bag")}, "a_file/bag"),
         ("world_simulator_node", {"grid_size": 100}, ""),  # outside 4..16: rclpy's range check
     ):
-        [result] = set_parameters(commander, node_name, **values)
-        assert not result.successful and reason in result.reason, (node_name, values, result.reason)
+        results = set_parameters(commander, node_name, **values)
+        assert all(not r.successful and reason in r.reason and "internal error" not in r.reason
+                   for r in results), (node_name, values, [r.reason for r in results])
     assert stack.parser.get_parameter("parser").value == ""
     assert commander.run_episode(COMMAND, timeout=TIMEOUT).outcome is Outcome.SUCCEEDED  # nothing changed
 

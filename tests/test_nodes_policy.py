@@ -211,12 +211,31 @@ def test_after_a_grid_size_mismatch_each_command_is_rejected_until_the_checkpoin
     told = [cdr_to_episode_status(r) for r in reports]
     assert [r.outcome for r in told] == ["active", "rejected", "rejected"]
     assert all("12x12 grid; the checkpoint was trained on 6x6" in r.text for r in told[1:])
+    assert told[2].text.startswith("not following 'walk to a circle': observation is a 12x12 grid")  # the graph is fine
     assert policy.seen == [] and policy.resets == ["walk to a red circle while spinning"]
     fitting = ScriptedPolicy([Action.WALK])
     fitting.grid_size, fitting.observation_shape = 12, (12, 12, 16)
     node._next_policy = fitting  # what an accepted `checkpoint` change installs for the next command
     node.on_graph(graph("walk to a circle"), source_info())
     assert fitting.resets == ["walk to a circle"] and len(fitting.seen) == 1
+
+
+def test_a_policy_stopped_mid_episode_reports_the_episode_preempted(probe):
+    """Its clients and recorders learn the episode ended, instead of waiting for it forever."""
+    from actionlib_msgs.msg import GoalStatus
+
+    from gscan_ros import episode_status as es
+
+    reports = probe.record("episode_status", GoalStatus, EVENT_QOS, raw=True)
+    node, policy = start(probe, [Action.WALK])
+    node.on_graph(graph(), source_info())
+    node.on_observation(observation(0), source_info())  # -> walk; waits for the world's reply
+    probe.executor.remove_node(node)
+    node.destroy_node()
+    probe.spin_until(lambda: len(reports) == 2, what="the end report")
+    active, end = (cdr_to_episode_status(r) for r in reports)
+    assert (end.episode_id, end.start_ns, end.outcome) == (active.episode_id, active.start_ns, es.PREEMPTED)
+    assert end.text.endswith("the policy stopped after 1 actions")
 
 
 def test_a_graph_of_another_parser_is_rejected(probe):

@@ -222,9 +222,10 @@ class Feed:
         self.state()
         self(interface.COMMAND_GRAPH, graph_to_cdr(self.graph))
 
-    def report(self, n: int, outcome: str) -> None:
+    def report(self, n: int, outcome: str, start_ns: int | None = None) -> None:
+        """Episode `n`'s report; `start_ns` (default `n`) tells apart two policies' episodes of one id."""
         self(interface.EPISODE_STATUS, episode_status_to_cdr(
-            es.EpisodeStatus(f"/policy_node/{n}", n, outcome, self.episode.command)))
+            es.EpisodeStatus(f"/policy_node/{n}", n if start_ns is None else start_ns, outcome, self.episode.command)))
 
     def act(self, *actions: Action) -> None:
         for action in actions:
@@ -250,6 +251,26 @@ def recorder(probe, tmp_path):
     """A recorder of `tmp_path/bag` (with `overwrite`); the test destroys it, which closes the bag."""
     return EpisodeRecorderNode(context=probe.context, parameter_overrides=parameters(
         bag_dir=str(tmp_path / "bag"), overwrite=True))
+
+
+def test_a_policy_restarted_mid_episode_leaves_both_episodes_of_its_reused_id_apart(recorder, tmp_path):
+    """A policy killed mid-episode sends no end; restarted, it numbers its episodes from 1
+    again. The recorder ends the dead one PREEMPTED just before the new one starts."""
+    from gscan_ros.world import demonstrate
+
+    feed = Feed(recorder)
+    feed.joined()
+    feed.report(1, es.ACTIVE, start_ns=10)
+    feed.act(Action.TURN_LEFT)  # killed here
+    actions = demonstrate(feed.world.snapshot(), feed.episode.command)
+    feed.report(1, es.ACTIVE, start_ns=20)  # the restarted policy's first episode
+    feed.act(*actions, Action.EOS)
+    feed.report(1, es.COMPLETE, start_ns=20)
+    recorder.destroy_node()
+    records, report = read(tmp_path / "bag", include_incomplete=True)
+    assert [(r.outcome, r.episode.actions) for r in records] == [(es.PREEMPTED, (Action.TURN_LEFT,)),
+                                                                 (es.COMPLETE, tuple(actions))]
+    assert report.complete and read_bag_info(tmp_path / "bag").episodes == 2
 
 
 def test_a_recorder_that_joins_mid_episode_writes_a_whole_bag(recorder, tmp_path):

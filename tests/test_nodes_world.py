@@ -66,6 +66,15 @@ def test_invalid_action_is_reported_and_the_unchanged_state_resent(probe, world)
     assert any("'fly away'" in s.data for s in status)
 
 
+def test_a_status_line_quotes_a_rejected_input_as_it_was_sent(probe, world):
+    """'turn  left' (two spaces) is unknown; folding the line must not make the quote read 'turn left'."""
+    node, observations, status = world
+    node.on_action(text_to_cdr("turn  left\nnow"), source_info())
+    probe.spin_until(lambda: any("rejected action" in s.data for s in status), what="a status line")
+    [line] = [s.data for s in status if "rejected action" in s.data]
+    assert "'turn  left\\nnow'" in line and "\n" not in line, line
+
+
 def test_bytes_that_are_no_string_are_one_rejection_and_the_node_serves_on(probe, world):
     node, observations, status = world
     node.on_action(b"\x00\x01\x00\x00\xff\xff", source_info())

@@ -342,7 +342,8 @@ def replaceable_bag(bag_dir: str | os.PathLike, overwrite: bool) -> list[Path]:
     if not bag_dir.exists() or not any(bag_dir.iterdir()):
         return []
     if not overwrite:
-        raise DatasetFormatError(f"{bag_dir}: exists and is not empty (pass --overwrite to replace a bag there)")
+        raise DatasetFormatError(f"{bag_dir}: exists and is not empty (pass --overwrite, or set the recorder's "
+                                 f"overwrite parameter, to replace a bag there)")
     own = bag_owned_files(bag_dir)
     foreign = sorted(p.name for p in bag_dir.iterdir() if p not in own)
     if foreign:

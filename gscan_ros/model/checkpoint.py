@@ -123,6 +123,8 @@ def save_checkpoint(path: str | os.PathLike, ckpt: dict, keep_previous: bool = F
 def read_checkpoint(path: str | os.PathLike) -> dict:
     """The raw checkpoint dict; CheckpointError if missing, unreadable or of another format."""
     path = Path(path)
+    if path.is_dir():
+        raise CheckpointError(f"checkpoint {str(path)!r} is a directory, not a checkpoint file")
     if not path.is_file():
         raise CheckpointError(f"checkpoint {str(path)!r} does not exist")
     _check_archive(path)

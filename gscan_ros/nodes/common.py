@@ -105,17 +105,21 @@ def describe(text: str, *, read_only: bool = False, int_range: tuple[int, int] |
 
 
 def validated(check: Callable[[dict[str, object]], None]) -> Callable[[list], SetParametersResult]:
-    """An on-set-parameters callback from `check({name: new value})`: a GscanError (or
-    ValueError) it raises rejects the whole change, its message being the reason
-    `ros2 param set` prints. Validate there; apply in a post-set callback. Any other
-    exception is a bug: it is logged with its traceback and the change is refused (an
-    exception escaping the parameter service would end the node)."""
+    """An on-set-parameters callback from `check({name: new value})`: a GscanError,
+    ValueError or OSError (a path that cannot be read or created) it raises rejects the
+    whole change, its message being the reason `ros2 param set` prints. Validate there;
+    apply in a post-set callback. Any other exception is a bug: it is logged with its
+    traceback and the change is refused (an exception escaping the parameter service
+    would end the node)."""
 
     def callback(parameters: list) -> SetParametersResult:
         try:
             check({p.name: p.value for p in parameters})
         except (GscanError, ValueError) as exc:
             return SetParametersResult(successful=False, reason=str(exc))
+        except OSError as exc:
+            where = f"{exc.filename}: " if exc.filename else ""
+            return SetParametersResult(successful=False, reason=f"{where}{exc.strerror or exc}")
         except Exception as exc:  # noqa: BLE001 - a node must survive its own bugs
             node = getattr(check, "__self__", None)  # the node whose method `check` is
             logger = node.get_logger() if isinstance(node, Node) else logging.getLogger("gscan_ros.nodes")
@@ -238,7 +242,8 @@ class StatusReporter:
 
     @staticmethod
     def _line(text: str) -> str:
-        line = " ".join(text.split())
+        """One line: line breaks become spaces; spaces within a line stay, so a quoted input reads as sent."""
+        line = " ".join(part.strip() for part in text.strip().splitlines())
         return line if len(line) <= STATUS_CHARS else line[: STATUS_CHARS - 3] + "..."
 
 

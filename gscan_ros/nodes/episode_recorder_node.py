@@ -189,6 +189,12 @@ class EpisodeRecorderNode(Node):
             self.status.reject(f"unreadable episode report: {exc}")
             return
         if report.outcome == es.ACTIVE:
+            earlier = self._running.get(report.episode_id)
+            if earlier is not None and earlier.start_ns != report.start_ns:
+                # The same id started again: its policy restarted without ending the earlier
+                # one, which ends just before the new one's start (readers order by publish time).
+                self._preempt(self._writer, earlier, f"{report.episode_id} started again (its node restarted)",
+                              publish_ns - 1)
             self._running[report.episode_id] = report
             record = {"version": EPISODE_FORMAT_VERSION, "id": report.episode_id, "split": LIVE_SPLIT,
                       "meta": {"recorded_by": self.get_fully_qualified_name()}}
@@ -207,15 +213,21 @@ class EpisodeRecorderNode(Node):
 
     def _stop_running(self, writer: BagWriter, why: str) -> None:
         """End the episodes still running in `writer`'s bag, which closes now, as preempted."""
-        for active in self._running.values():
-            report = es.EpisodeStatus(active.episode_id, active.start_ns, es.PREEMPTED, f"{active.text!r}: {why}")
-            now = time.time_ns()
-            writer.write_message(interface.EPISODE_STATUS.bag_topic, interface.EPISODE_STATUS.type,
-                                 episode_status_to_cdr(report), now, max(now, writer.last_publish_ns + 1))
-            number = writer.episodes_written
-            writer.count_episode(None)
-            self.status.info(f"recorded episode {number} ({active.episode_id}: {es.PREEMPTED}, {why})")
-        self._running.clear()
+        for active in list(self._running.values()):
+            self._preempt(writer, active, why)
+
+    def _preempt(self, writer: BagWriter, active: es.EpisodeStatus, why: str, publish_ns: int | None = None) -> None:
+        """End `active` in `writer`'s bag with the recorder's own PREEMPTED report, published
+        at `publish_ns` (default: after everything written so far), and count it."""
+        self._running.pop(active.episode_id, None)
+        report = es.EpisodeStatus(active.episode_id, active.start_ns, es.PREEMPTED, f"{active.text!r}: {why}")
+        now = time.time_ns()
+        writer.write_message(interface.EPISODE_STATUS.bag_topic, interface.EPISODE_STATUS.type,
+                             episode_status_to_cdr(report), now,
+                             max(now, writer.last_publish_ns + 1) if publish_ns is None else publish_ns)
+        number = writer.episodes_written
+        writer.count_episode(None)
+        self.status.info(f"recorded episode {number} ({active.episode_id}: {es.PREEMPTED}, {why})")
 
     def destroy_node(self) -> None:
         try:

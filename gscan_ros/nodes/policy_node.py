@@ -32,6 +32,7 @@ import time
 
 import numpy as np
 from actionlib_msgs.msg import GoalStatus
+from rclpy.duration import Duration
 from rclpy.node import Node
 from sensor_msgs.msg import Image
 from std_msgs.msg import Header, String
@@ -73,6 +74,7 @@ from msg_adapters import (
 MODEL_PARAMETERS = ("checkpoint", "device")
 STEP_TIMEOUT_S = 30.0  # a world step takes milliseconds; a robot's gSCAN action a few seconds
 WATCHDOG_PERIOD_S = 0.1  # how often a waiting episode's `step_timeout` is checked
+SHUTDOWN_ACK_S = 2.0  # how long a stopping node waits for its last episode report to be taken
 
 
 class PolicyNode(Node):
@@ -215,6 +217,10 @@ class PolicyNode(Node):
         self._take_next_policy()
         try:
             self._check_grid(self._observation)
+        except GscanError as exc:
+            self._refuse(f"not following {graph.command!r}: {exc}")
+            return
+        try:
             self._policy.reset(graph)
         except GscanError as exc:
             self._refuse(f"bad command graph: {exc}")
@@ -332,6 +338,15 @@ class PolicyNode(Node):
             self._size_ordering_pub = self.create_publisher(Image, SIZE_ORDERING, qos_profile(interface.SIZE_ORDERING))
         self._size_ordering_pub.publish(attention_to_cdr(ordering - ordering.min(), upsample=upsample,
                                                          header=self._observation_header))
+
+    def destroy_node(self) -> None:
+        """An episode still running ends here, PREEMPTED, so no client or recorder waits
+        for its end in vain; the report is acknowledged (or `SHUTDOWN_ACK_S` passes)
+        before its publisher goes. A context already shut down can carry nothing."""
+        if self._graph is not None and self.context.ok():
+            self._end(es.PREEMPTED, f"the policy stopped after {self._steps} actions")
+            self._episode_pub.wait_for_all_acked(Duration(seconds=SHUTDOWN_ACK_S))
+        super().destroy_node()
 
 
 def main(args: list[str] | None = None) -> int:

@@ -12,7 +12,8 @@ ended with its world (docs/ros.md "Resets"). The node counts the actions of the 
 episode (`actions since reset`), from 0 at each load, each `<eos>` and each episode the
 policy starts (`episode_status` ACTIVE: a preempted episode sends no `<eos>`). A new
 situation source set while running (`ros2 param set`: dataset, split, index, seed,
-grid_size) is served from the next reset.
+grid_size) is served from the next reset, once it has been opened and its first example
+read (a source that cannot be served is refused).
 """
 from __future__ import annotations
 
@@ -120,12 +121,22 @@ class WorldSimulatorNode(Node):
         return episode_source(*(self.get_parameter(name).value for name in SOURCE_PARAMETERS))
 
     def _check_parameters(self, changes: dict) -> None:
-        """Reject a dataset that is not there or an empty split before it is used."""
-        dataset = changes.get("dataset", self.get_parameter("dataset").value)
-        if "dataset" in changes and dataset and not Path(dataset).exists():
+        """Refuse a dataset source the next reset could not load from: the new dataset,
+        split and index are opened here and their first example read, so a missing or
+        malformed dataset, an unknown split or an index past its end is refused with the
+        reason instead of failing every reset after it."""
+        values = {name: changes.get(name, self.get_parameter(name).value) for name in SOURCE_PARAMETERS}
+        dataset = values["dataset"]
+        if not dataset or not {"dataset", "split", "index"} & changes.keys():
+            return
+        if not Path(dataset).exists():
             raise DatasetFormatError(f"dataset {dataset!r} does not exist")
-        if "split" in changes and dataset and not changes["split"]:
+        if not values["split"]:
             raise DatasetFormatError("split must not be empty when a dataset is served")
+        try:
+            episode_source(*values.values()).next()
+        except GscanError as exc:
+            raise DatasetFormatError(f"dataset {dataset!r}, split {values['split']!r}: {exc}") from None
 
     @guarded
     def _apply_parameters(self, parameters: list) -> None:

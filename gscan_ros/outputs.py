@@ -67,18 +67,30 @@ def claimed(path: str | os.PathLike) -> Iterator[Path]:
     """Hold the exclusive lock of output `path` (a file or a folder) for the block.
 
     Partial files a dead writer of `path` left are removed first (a live one would hold
-    the lock); an OSError of the disk (full, read-only, no permission) leaves the block
-    as one `OutputError` line."""
+    the lock); an OSError of the disk (full, read-only, no permission) on `path`, in it or
+    on its lock and partial files leaves the block as one `OutputError` line (one on an
+    input read in the block is left as it is)."""
     path = Path(path)
     try:
         with _Lock(path):
             _remove_partials(path)
             yield path
     except OSError as exc:
-        if exc.errno not in WRITE_ERRNOS:
+        if exc.errno not in WRITE_ERRNOS or not _of_output(exc.filename, path):
             raise
         where = f" ({exc.filename})" if exc.filename and Path(exc.filename) != path else ""
         raise OutputError(f"while writing {path}: {exc.strerror}{where}") from None
+
+
+def _of_output(filename: str | os.PathLike | None, path: Path) -> bool:
+    """Whether an error on `filename` is one of writing `path`: the path itself, what lies
+    in it, the folders made for it, or its lock and partial files (named after it, beside it)."""
+    if filename is None:
+        return True
+    failed, out = Path(os.path.abspath(filename)), Path(os.path.abspath(path))
+    if failed == out or out in failed.parents or failed in out.parents:
+        return True
+    return any(p.parent == out.parent and out.name in p.name for p in (failed, *failed.parents))
 
 
 def check_targets(paths: Iterable[str | os.PathLike], *, overwrite: bool, flag: str = "--out") -> None:

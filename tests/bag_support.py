@@ -186,9 +186,10 @@ class LiveStack:
         if graph is not None:
             self.publish("command_graph", graph_to_cdr(graph))
 
-    def start(self) -> es.EpisodeStatus:
+    def start(self, command: str = "") -> es.EpisodeStatus:
+        """The policy's ACTIVE report; policy_node names the `command` it took."""
         self.episodes += 1
-        report = es.EpisodeStatus(f"{self.policy}/{self.episodes}", self.now + self.step_ns, es.ACTIVE, "")
+        report = es.EpisodeStatus(f"{self.policy}/{self.episodes}", self.now + self.step_ns, es.ACTIVE, command)
         self.publish("episode_status", episode_status_to_cdr(report))
         return report
 

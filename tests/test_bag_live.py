@@ -194,6 +194,31 @@ def test_preempted_episodes_last_action_logged_late_stays_in_it(tmp_path):
         (_live("walk to a blue circle", middle, second), es.COMPLETE)]
 
 
+def test_two_commands_sent_at_once_each_keep_their_own_episode(tmp_path):
+    """Both graphs reach the recorder before the first one's ACTIVE report: the episode
+    takes the graph of the command its report names, not the newest (which preempts it)."""
+    rng = random.Random(4)
+    stack = LiveStack(make_episodes(1, seed=3)[0].situation)
+    stack.state()
+    first_command, second_command = "walk to a red circle", "walk to a blue circle"
+    stack.command(first_command, PARSER.parse(first_command))
+    stack.command(second_command, PARSER.parse(second_command))
+    start, first = stack.world.snapshot(), stack.route(rng, 1)
+    preempted = stack.start(first_command)
+    stack.act(first[0])
+    stack.end(preempted, es.PREEMPTED)
+    middle, second = stack.world.snapshot(), stack.route(rng, 3)
+    following = stack.start(second_command)
+    for action in [*second, Action.EOS]:
+        stack.act(action)
+    stack.end(following, es.COMPLETE)
+    records = list(BagEpisodeReader(_record(stack, tmp_path / "both"), include_incomplete=True).records())
+    assert [(r.episode, r.outcome) for r in records] == [
+        (_live(first_command, start, first), es.PREEMPTED),
+        (_live(second_command, middle, second), es.COMPLETE)]
+    assert "typed_command" not in records[0].episode.meta  # the newest typed command is the second's
+
+
 def test_missed_situations_and_observations_are_replayed(tmp_path):
     """The world publishes its situation after every step on a depth-1 latched topic: a busy
     recorder may keep only the first. Each episode starts where the actions since led."""

@@ -59,12 +59,16 @@ BAD_ARGUMENTS = [
     ("verify {data} --splits=train,,dev", "--splits"),
     ("verify {data} --limit x", "--limit"),
     ("verify {data} --show -1", "--show"),
+    ("verify {data} --allow-partial", "--allow-partial"),  # for bags only: not ignored
+    ("verify {data} --include-incomplete", "--include-incomplete"),
     # render
     ("render {missing} --out {tmp}/a.png", "DATASET"),
     ("render {data} --out {tmp}/a.gif --fps 0", "--fps"),
     ("render {data} --out {tmp}/a.gif --fps -2", "--fps"),
     ("render {data} --out {tmp}/a.gif --fps nan", "--fps"),
     ("render {data} --out {tmp}/a.gif --fps 1000", "--fps"),
+    ("render {data} --out {tmp}/a.gif --fps 0.001", "--fps"),  # a GIF frame lasts at most 655.35 s
+    ("render {data} --out {tmp}/a.png --fps 7", "--fps"),  # a PNG has no frame rate: not ignored
     ("render {data} --out {tmp}/a.png --cell-px -5", "--cell-px"),
     ("render {data} --out {tmp}/a.png --cell-px 0", "--cell-px"),
     ("render {data} --out {tmp}/a.png --cell-px 100000", "--cell-px"),
@@ -76,6 +80,7 @@ BAD_ARGUMENTS = [
     ("render {data} --out {png}", "--overwrite"),
     # parse (no numbers or paths: its choices fail the same way)
     ("parse walk to a circle --lexicon x", "--lexicon"),
+    ("parse walk to a circle --all --parser dependency", "--all"),
     # train
     ("train --data {missing}", "--data"),
     ("train --data {data} --config {missing}", "--config"),
@@ -93,6 +98,7 @@ BAD_ARGUMENTS = [
     ("train --data {data} --config {yaml_model_list}", "model"),
     ("train --data {data} --config {yaml_latin1}", "UTF-8"),
     ("train --data {data} --device tpu", "--device"),
+    ("train --data {data} --include-incomplete", "include_incomplete"),  # every dataset.txt example is complete
     # evaluate
     ("evaluate --data {missing}", "--data"),
     ("evaluate --data {data} --checkpoint {missing}", "--checkpoint"),
@@ -101,6 +107,7 @@ BAD_ARGUMENTS = [
     ("evaluate --data {data} --threads -4", "--threads"),
     (f"evaluate --data {{data}} --threads {CPUS + 1}", f"only {CPUS} CPU(s)"),
     ("evaluate --data {data} --seed -1", "--seed"),
+    ("evaluate --data {data} --seed 7", "--max-examples"),  # no subset to seed: not ignored
     ("evaluate --data {data} --out {file}", "--out"),
     ("evaluate --data {data} --device tpu", "--device"),
     # experiment
@@ -152,6 +159,10 @@ BAD_ARGUMENTS = [
     ("bringup --seed -2", "--seed"),
     ("bringup --record {file}/bag", "--record"),
     ("bringup --checkpoint {missing}", "--checkpoint"),
+    ("bringup --overwrite", "--record"),  # nothing to overwrite: not ignored
+    ("bringup --dataset {data} --seed 5", "--seed"),  # the dataset's examples, not sampled worlds
+    ("bringup --split dev", "--split"),  # sampled worlds have no split
+    ("demo --dataset {data} --grid-size 8", "--grid-size"),
     ("demo --out {file}/run", "--out"),
 ]
 if not torch.cuda.is_available():  # CI: a GPU asked for and not there

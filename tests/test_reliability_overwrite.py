@@ -71,6 +71,14 @@ def test_bag_writer_overwrite_replaces_only_an_old_bag(tmp_path):
     assert sorted(p.name for p in (tmp_path / "bag").iterdir()) == ["bag_0.mcap", "metadata.yaml"]
 
 
+def test_demo_overwrite_leaves_no_gif_of_an_earlier_longer_demo(tmp_path):
+    from gscan_ros.cli.demo import _earlier_gifs
+
+    for name in ("episode_1.gif", "episode_2.gif", "episode_10.gif", "episode_x.gif", "notes.txt"):
+        (tmp_path / name).write_bytes(b"x")
+    assert [p.name for p in _earlier_gifs(tmp_path, 2)] == ["episode_10.gif"]  # not a file it did not write
+
+
 def test_demo_refuses_a_non_empty_out_without_overwrite(tmp_path, capsys):
     out = tmp_path / "mine"
     out.mkdir()

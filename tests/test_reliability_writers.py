@@ -344,6 +344,22 @@ def test_a_full_disk_is_one_line(data, tmp_path, capsys, monkeypatch, command):
     assert f"while writing {tmp_path / 'out'}: No space left on device" in line
 
 
+@pytest.mark.parametrize("command", ["verify", "evaluate"])
+def test_an_input_that_cannot_be_read_is_one_line_naming_it(data, tmp_path, capsys, monkeypatch, command):
+    """Not a traceback, and not reported as a failure to write the output."""
+    unreadable = str(data / "txt" / "dataset.txt")
+
+    def denied(*args, **kwargs):
+        raise PermissionError(errno.EACCES, "Permission denied", unreadable)
+
+    monkeypatch.setattr("gscan_ros.data.dataset._walk", denied)
+    argv = {"verify": ["verify", data / "txt"],
+            "evaluate": ["evaluate", "--checkpoint", data / "tiny.pt", "--data", data / "txt", "--out",
+                         tmp_path / "out", "--max-examples", "2", "--quiet"]}[command]
+    line = _refused(capsys, *argv)
+    assert line == f"gscan-ros {command}: error: {unreadable}: Permission denied"
+
+
 def test_a_bag_dataset_manifest_lists_every_split_bag(data):
     manifest = json.loads((data / "mcap" / DATASET_MANIFEST).read_text())
     assert {s for s, n in manifest["splits"].items() if n} == set(split_bags(data / "mcap"))

@@ -137,6 +137,7 @@ def test_a_new_run_refuses_an_existing_run_directory(dataset, tmp_path, capsys):
     run = tmp_path / "run"
     assert run_train(dataset, run, "--set", "max_updates=1") == 0
     (run / "notes.txt").write_text("mine")
+    (run / "results.json").write_text("{}")  # the old model's scores (an evaluation into the run)
     before = {p.name: p.read_bytes() for p in run.iterdir()}
     assert run_train(dataset, run, "--set", "max_updates=1") == 1
     err = capsys.readouterr().err.strip().splitlines()
@@ -144,6 +145,7 @@ def test_a_new_run_refuses_an_existing_run_directory(dataset, tmp_path, capsys):
     assert {p.name: p.read_bytes() for p in run.iterdir()} == before
     assert run_train(dataset, run, "--set", "max_updates=2", "--overwrite") == 0
     assert read_checkpoint(run / "last.pt")["step"] == 2 and (run / "notes.txt").read_text() == "mine"
+    assert not (run / "results.json").exists()  # no old scores beside the new run
     assert sum(json.loads(line)["event"] == "start" for line in (run / "metrics.jsonl").read_text().splitlines()) == 1
 
 

@@ -73,7 +73,10 @@ def main(argv: list[str] | None = None) -> int:
     except BrokenPipeError:
         return 0
     except OSError as exc:
-        if exc.filename is not None or exc.errno not in _FULL_DISK:  # not standard output's
+        if exc.filename is not None and exc.strerror:  # an input that cannot be read (no permission, ...)
+            print(f"gscan-ros {args.command}: error: {exc.filename}: {exc.strerror}", file=sys.stderr)
+            return 1
+        if exc.errno not in _FULL_DISK:  # no file named: a bug, with its traceback
             raise
         print(f"gscan-ros {args.command}: error: cannot write to standard output: {exc.strerror}", file=sys.stderr)
         _discard_stdout()

@@ -1,7 +1,7 @@
 """`gscan-ros bringup`: the gscan_ros nodes in one process, for machines without `ros2 launch`.
 
 The same node classes and parameters as `launch/gscan.launch.py`, spun by one
-MultiThreadedExecutor (`gscan_ros.nodes.stack`). Talk to it like to the launched stack,
+SingleThreadedExecutor (`gscan_ros.nodes.stack`). Talk to it like to the launched stack,
 e.g. with `ros2 topic pub /command std_msgs/msg/String "{data: 'walk to a red circle'}" --once`.
 """
 from __future__ import annotations
@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 
 from gscan_ros.cli.args import existing_file, existing_path, int_in, nonnegative_int, output_dir, positive_int
+from gscan_ros.errors import GscanError
 from gscan_ros.nodes.stack import StackOptions  # rclpy and torch are imported only when a stack starts
 from gscan_ros.world.types import GRID_SIZE, SUPPORTED_GRID_SIZES
 
@@ -20,12 +21,13 @@ def add_stack_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--parser", default="", help="parse type (default: the checkpoint's)")
     source = parser.add_argument_group("situations (a dataset split, else random sampling)")
     source.add_argument("--dataset", type=existing_path, default=None, help="dataset.txt, its directory, or a bag")
-    source.add_argument("--split", default="test", help="dataset split (default: test)")
-    source.add_argument("--index", type=nonnegative_int, default=0, help="first example of the split (default: 0)")
-    source.add_argument("--seed", type=nonnegative_int, default=0,
-                        help="first sampling seed without --dataset (default: 0)")
+    source.add_argument("--split", default=None, help="dataset split, with --dataset (default: test)")
+    source.add_argument("--index", type=nonnegative_int, default=None,
+                        help="first example of the split, with --dataset (default: 0)")
+    source.add_argument("--seed", type=nonnegative_int, default=None,
+                        help="first sampling seed, without --dataset (default: 0)")
     source.add_argument("--grid-size", type=int_in(SUPPORTED_GRID_SIZES[0], SUPPORTED_GRID_SIZES[-1]),
-                        default=GRID_SIZE, help=f"grid side of sampled worlds without --dataset (default: {GRID_SIZE})")
+                        default=None, help=f"grid side of sampled worlds, without --dataset (default: {GRID_SIZE})")
     parser.add_argument("--max-steps", type=positive_int, default=None,
                         help="action cap per episode (default: policy_node's, gscan_ros.model.policy.MAX_STEPS)")
 
@@ -44,6 +46,24 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+SOURCE_DEFAULTS = {"split": "test", "index": 0, "seed": 0, "grid_size": GRID_SIZE}
+
+
+def resolve_source_arguments(args: argparse.Namespace) -> None:
+    """Refuse situation options the chosen source does not use (--split and --index name a
+    dataset's examples; --seed and --grid-size sample worlds without one), then fill in the
+    defaults of the others."""
+    unused = ("seed", "grid_size") if args.dataset is not None else ("split", "index")
+    given = [f"--{name.replace('_', '-')}" for name in unused if getattr(args, name) is not None]
+    if given:
+        source = ("--dataset serves its own examples" if args.dataset is not None
+                  else "without --dataset, worlds are sampled")
+        raise GscanError(f"{' and '.join(given)}: not used ({source})")
+    for name, value in SOURCE_DEFAULTS.items():
+        if getattr(args, name) is None:
+            setattr(args, name, value)
+
+
 def stack_options(args: argparse.Namespace, **overrides) -> StackOptions:
     """The StackOptions the parsed arguments name (fields missing from `args` keep their defaults)."""
     fields = {name: getattr(args, name) for name in StackOptions.__dataclass_fields__ if hasattr(args, name)}
@@ -56,6 +76,9 @@ def run(args: argparse.Namespace) -> int:
     from gscan_ros.nodes.stack import Stack
     from gscan_ros.outputs import claimed
 
+    resolve_source_arguments(args)
+    if args.overwrite and args.record is None:
+        raise GscanError("--overwrite replaces a bag at --record BAG_DIR; no --record given")
     with claimed(args.record) if args.record else contextlib.nullcontext(), Stack(stack_options(args)) as stack:
         names = ", ".join(n.get_name() for n in stack.nodes)
         print(f"gscan-ros bringup: running {names}; Ctrl-C stops")

@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 from gscan_ros.cli.args import float_in, nonblank, output_dir, positive_int
-from gscan_ros.cli.bringup import add_stack_arguments, stack_options
+from gscan_ros.cli.bringup import add_stack_arguments, resolve_source_arguments, stack_options
 from gscan_ros.errors import GscanError
 
 DEFAULT_OUT_ROOT = Path("out/demo")
@@ -43,13 +43,22 @@ def run(args: argparse.Namespace) -> int:
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     from gscan_ros.outputs import claimed, refuse_links
 
+    resolve_source_arguments(args)
     out = args.out or DEFAULT_OUT_ROOT / time.strftime("%Y%m%d_%H%M%S")
     with claimed(out):
         if out.exists() and any(out.iterdir()) and not args.overwrite:
             raise GscanError(f"--out {out} is not empty; pass --overwrite to replace an earlier demo there")
         refuse_links([out / "bag", *(out / f"episode_{i}.gif" for i in range(1, args.episodes + 1))])
         out.mkdir(parents=True, exist_ok=True)
+        for gif in _earlier_gifs(out, args.episodes):  # an earlier demo's, beyond this one's episodes
+            gif.unlink()
         return _run(args, out)
+
+
+def _earlier_gifs(out: Path, episodes: int) -> list[Path]:
+    """The `episode_<n>.gif` files an earlier demo wrote in `out` that one of `episodes` does not replace."""
+    return [p for p in out.glob("episode_*.gif")
+            if p.is_file() and not p.is_symlink() and p.stem[8:].isdigit() and int(p.stem[8:]) > episodes]
 
 
 def _run(args: argparse.Namespace, out: Path) -> int:

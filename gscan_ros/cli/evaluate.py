@@ -13,6 +13,7 @@ from gscan_ros.cli.args import (
     thread_count,
 )
 from gscan_ros.data.splits import SPLIT_LETTERS
+from gscan_ros.errors import GscanError
 
 
 def register(subparsers) -> None:
@@ -45,7 +46,8 @@ def register(subparsers) -> None:
                       help="store every word's attention map per step in predictions.json (large: ~85 kB per episode)")
     p.add_argument("--threads", type=thread_count, default=0,
                    help="torch threads (0 = torch default; at most the CPUs available)")
-    p.add_argument("--seed", type=nonnegative_int, default=0, help="seed of the --max-examples subset")
+    p.add_argument("--seed", type=nonnegative_int, default=None,
+                   help="seed of the --max-examples subset (default: 0)")
     add_device_argument(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -63,6 +65,9 @@ def run(args: argparse.Namespace) -> int:
     from gscan_ros.training.evaluation_files import claim_report_dir, markdown_table, write_reports
     from gscan_ros.user_files import file_sha256
 
+    if args.seed is not None and not args.max_examples:
+        raise GscanError("--seed picks the --max-examples subset; without --max-examples every episode is decoded")
+    seed = args.seed or 0
     configure_torch(args.threads)
     with contextlib.ExitStack() as held:
         # The ranks only exchange predictions (Python objects): gloo, whatever the device.
@@ -71,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
         policy = Policy.from_checkpoint(args.checkpoint, device=ranks.device)  # a clear error if unreadable
         checkpoint = args.checkpoint or default_checkpoint_path()
         digest = file_sha256(checkpoint)  # which weights these results score, whatever the path holds later
-        episodes = select_test_episodes(args.data, args.splits, args.max_examples, args.seed)
+        episodes = select_test_episodes(args.data, args.splits, args.max_examples, seed)
         start = time.time()
         result = evaluate_episodes(policy, episodes, batch_size=args.batch_size, ranks=ranks,
                                    record_attention=args.attention,

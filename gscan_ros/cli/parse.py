@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import argparse
 
+from gscan_ros.errors import GscanError
+
 
 def lexicon_name(text: str) -> str:
     """A `Lexicon.named` name; checked on use, so registering `parse` does not load NLTK."""
@@ -39,6 +41,8 @@ def register(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     from gscan_ros.language import BUILTIN_PARSERS, DEFAULT_PARSER, Lexicon, canonicalize, get_parser
 
+    if args.all and args.parser:
+        raise GscanError("--all prints every parser's graph; --parser picks one")
     lexicon = Lexicon.named(args.lexicon)
     names = BUILTIN_PARSERS if args.all else (args.parser or DEFAULT_PARSER,)
     text = " ".join(args.words)

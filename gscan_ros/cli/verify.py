@@ -18,6 +18,7 @@ import argparse
 from gscan_ros import episode_status as es
 from gscan_ros.cli.args import existing_path, name_list, nonnegative_int, positive_int
 from gscan_ros.data.bag_format import LIVE_SPLIT
+from gscan_ros.errors import GscanError
 
 
 def register(subparsers) -> None:
@@ -52,7 +53,6 @@ def _tokens(actions) -> str:
 
 def check_episode(episode, *, replan: bool = True) -> str | None:
     """None if the episode replays and (with `replan`) matches the planner, else a one-line reason."""
-    from gscan_ros.errors import GscanError
     from gscan_ros.world import World, demonstrate
 
     world = World(episode.situation)
@@ -83,6 +83,10 @@ def run(args: argparse.Namespace) -> int:
 
     splits = args.splits
     readers = _bag_readers(args.dataset, splits, args.include_incomplete)
+    if readers is None and (args.allow_partial or args.include_incomplete):
+        flags = " and ".join(f for f, on in (("--allow-partial", args.allow_partial),
+                                             ("--include-incomplete", args.include_incomplete)) if on)
+        raise GscanError(f"{flags}: for recorded bags; {args.dataset} is a dataset.txt")
     if readers is None:
         from gscan_ros.data.io import iter_episodes
 

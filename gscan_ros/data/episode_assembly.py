@@ -14,9 +14,12 @@ DDS source timestamp), and episodes are what the policy reports (docs/bags.md):
   the actions published since (and after the newest `/world_reset`) replayed through
   the World: a depth-1 latched topic may skip states under load, the action stream
   (reliable, deep) does not;
-- its command graph is the newest `/command_graph` before it started, its typed command
-  the newest `/command`, and what a bag adds (`/episode`, keyed by the report's id) its
-  split, example id and dataset fields;
+- its command graph is the newest `/command_graph` before it started of the command its
+  ACTIVE report names (two commands sent within milliseconds both reach the recorder
+  before the first one's ACTIVE report; a stack whose reports name no command: the
+  newest graph), its typed command the newest `/command` when that graph is the newest,
+  and what a bag adds (`/episode`, keyed by the report's id) its split, example id and
+  dataset fields;
 - its observations (for the training cache) follow the lock-step protocol: the state it
   acts on first is the newest `/observation` before its first action (the reply to a
   preempted episode's last action may come after the next ACTIVE report), and each
@@ -41,6 +44,7 @@ from __future__ import annotations
 
 import heapq
 import json
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterable, Iterator, NamedTuple
 
@@ -53,6 +57,7 @@ from gscan_ros.world.types import Action, Situation
 
 REORDER_WINDOW = 4096  # messages held back to restore publication order (a recorder logs in arrival order)
 MAX_PENDING_RECORDS = 1024  # `/episode` records waiting for their episode (a bound, not a limit in practice)
+RECENT_GRAPHS = 64  # command graphs an ACTIVE report's command is looked up in (commands queued at the policy)
 
 LOSS = object()  # a marker in the message stream: data was lost here
 RECORDING_STOPPED = "the recording stopped"  # why an episode still running when its bag closed ended
@@ -277,6 +282,7 @@ class EpisodeAssembler:
         self._situation: tuple[int, dict] | _Unreadable | None = None
         self._since_situation: list[Action] = []  # world actions published after the newest situation
         self._graph: str | _Unreadable | None = None
+        self._graphs: deque[str | _Unreadable] = deque(maxlen=RECENT_GRAPHS)  # the newest last
         self._command: str | _Unreadable | None = None
         self._observation: Any = None  # the newest state, decoded
         self._records: dict[str, dict] = {}
@@ -322,6 +328,7 @@ class EpisodeAssembler:
                 self._open.aligned = False
         elif topic == "command_graph":
             self._graph = value
+            self._graphs.append(value)
         elif topic == "command":
             self._command = value
         elif topic == "episode":
@@ -344,6 +351,7 @@ class EpisodeAssembler:
             self._record_lost = "its /episode record was lost"
         self._drop("cut by lost data")
         self._situation = self._graph = self._command = self._observation = None
+        self._graphs.clear()
         self._since_situation = []
 
     def finish(self, *, closed: bool) -> AssembledEpisode | None:
@@ -386,6 +394,7 @@ class EpisodeAssembler:
             self._situation, self._since_situation = _Unreadable(reason), []
         elif topic == "command_graph":
             self._graph = _Unreadable(reason)
+            self._graphs.append(self._graph)
         elif topic == "command":
             self._command = _Unreadable(reason)
         elif topic == "episode" and (episode is None or episode.record is not None):
@@ -404,13 +413,15 @@ class EpisodeAssembler:
                 self._span -= 1  # this report starts the next one
                 self._drop("a new episode started before it reported its end")
                 self._span = 1
-            prologue = [v for v in (self._situation, self._graph, self._command) if isinstance(v, _Unreadable)]
+            graph = self._graph_of(report.text)
+            typed = self._command if graph is self._graph else None  # the newest command made the newest graph
+            prologue = [v for v in (self._situation, graph, typed) if isinstance(v, _Unreadable)]
             self._open = _Open(
                 report=report,
                 situation=None if isinstance(self._situation, _Unreadable) else self._situation,
                 replay=list(self._since_situation),
-                graph_json=None if isinstance(self._graph, _Unreadable) else self._graph,
-                command=None if isinstance(self._command, _Unreadable) else self._command,
+                graph_json=None if isinstance(graph, _Unreadable) else graph,
+                command=None if isinstance(typed, _Unreadable) else typed,
                 record=self._records.pop(report.episode_id, None),
                 record_lost=self._record_lost,
                 damage=prologue[0].reason if prologue else None,
@@ -482,6 +493,14 @@ class EpisodeAssembler:
         return AssembledEpisode(header, episode.actions, episode.graph_json,
                                 observations if self._keep_observations else None, report.outcome, messages,
                                 report)
+
+    def _graph_of(self, command: str) -> str | _Unreadable | None:
+        """The newest graph of `command` (the policy's ACTIVE report names the command it
+        took), else the newest graph."""
+        for graph in reversed(self._graphs):
+            if not isinstance(graph, _Unreadable) and command and _graph_fields(graph).get("command") == command:
+                return graph
+        return self._graph
 
     @staticmethod
     def _unusable(episode: _Open, outcome: str) -> str | None:

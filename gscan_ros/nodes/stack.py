@@ -1,4 +1,8 @@
-"""The gscan_ros nodes in one process, spun by one MultiThreadedExecutor.
+"""The gscan_ros nodes in one process, spun by one SingleThreadedExecutor.
+
+One thread runs every callback to its end (the lock-step stack is sequential anyway, and
+Python callbacks share the GIL), so when the spinning stops no callback is left running
+while the nodes are destroyed: a recorder's bag is never closed under a write.
 
 The same node classes and parameters as `launch/gscan.launch.py`, for machines without
 `ros2 launch` (`gscan-ros bringup`) and for the demo, which drives the stack with a
@@ -37,7 +41,7 @@ class StackOptions:
 
 
 class Stack:
-    """The nodes of one stack in rclpy's default context, spun by a MultiThreadedExecutor.
+    """The nodes of one stack in rclpy's default context, spun by a SingleThreadedExecutor.
 
     Use as a context manager; `spin()` blocks until SIGINT/SIGTERM, `start()` spins in a
     background thread (the demo). Leaving the context destroys the nodes, which closes
@@ -51,7 +55,7 @@ class Stack:
 
     def __enter__(self) -> "Stack":
         import rclpy
-        from rclpy.executors import MultiThreadedExecutor
+        from rclpy.executors import SingleThreadedExecutor
         from rclpy.signals import SignalHandlerOptions
 
         rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
@@ -61,7 +65,7 @@ class Stack:
             self._destroy()
             rclpy.try_shutdown()
             raise
-        self.executor = MultiThreadedExecutor()
+        self.executor = SingleThreadedExecutor()
         for node in self.nodes:
             self.executor.add_node(node)
         return self

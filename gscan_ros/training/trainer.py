@@ -43,6 +43,7 @@ from gscan_ros.training import distributed
 from gscan_ros.training.batches import EpisodeStore, EpochCursor, iterate_batches, word_repeats
 from gscan_ros.training.config import SCREEN_SEED_STRIDE, ConfigError, TrainConfig, config_changes
 from gscan_ros.training.evaluate import evaluate_episodes, exact_match_by_group
+from gscan_ros.training.evaluation_files import REPORT_FILES
 from gscan_ros.training.metrics_log import append_event, finished_end, read_events, rewind
 from gscan_ros.training.step import TrainingDiverged, TrainStep
 
@@ -52,7 +53,10 @@ SCREEN_EPISODES = 300
 # What a screened candidate is: the Run attributes that `fresh_start` and training change.
 SCREEN_STATE = ("seed", "model", "optimizer", "scheduler", "step", "cursor", "train_step", "policy")
 
-RUN_FILES = ("config.yaml", "metrics.jsonl", "learning_curve.png", "last.pt", "last.prev.pt", "best.pt", "model.pt")
+# A run's files, its evaluation's among them (`--overwrite` leaves no old model's scores
+# beside the new run's); train.log is the experiment runner's, open while it trains.
+RUN_FILES = ("config.yaml", "metrics.jsonl", "learning_curve.png", "last.pt", "last.prev.pt", "best.pt", "model.pt",
+             *REPORT_FILES, "evaluate.log")
 
 log = logging.getLogger(__name__)
 
@@ -176,6 +180,9 @@ def split_cache(data: str, split: str, include_incomplete: bool = False):
 
     bags = select_bags(data, [split])
     if bags is None:
+        if include_incomplete:
+            raise ConfigError(f"include_incomplete keeps recorded episodes that did not end complete; {data} is "
+                              f"a dataset.txt, whose examples are all demonstrations")
         return None
     from gscan_ros.data.bag_cache import load_episode_cache
 

@@ -133,3 +133,20 @@ def test_a_bag_on_two_grid_sizes_fails(tmp_path, capsys):
     assert code == 1
     assert err[-1] == (f"gscan-ros verify: error: {tmp_path / 'mixed'}: episodes on 2 grid sizes "
                        "(3 on 6x6, 2 on 8x8); a dataset has one (`train` refuses it)")
+
+
+def test_the_outcome_line_counts_a_refused_command_but_does_not_claim_it_was_taken():
+    """A command refused before any episode began is a `rejected` outcome with no episode:
+    `verify`/`replay --include-incomplete` cannot have checked or replayed it."""
+    from types import SimpleNamespace
+
+    from gscan_ros.data.bag_report import incomplete_line
+
+    readers = [SimpleNamespace(report=SimpleNamespace(outcomes={"cut": 2, "rejected": 1}))]
+    taken = [SimpleNamespace(meta={"outcome": "cut"})] * 2
+    assert incomplete_line(readers, taken, "checked") == (
+        "episodes that did not end complete: 2 cut, 1 rejected (checked: 2 cut; 1 refused before any action, "
+        "nothing to take)")
+    assert incomplete_line(readers, None, "replayed") == \
+        "episodes that did not end complete: 2 cut, 1 rejected (not replayed)"
+    assert incomplete_line([SimpleNamespace(report=SimpleNamespace(outcomes={}))], [], "checked") is None

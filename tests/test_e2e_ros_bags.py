@@ -87,13 +87,17 @@ def test_an_all_topics_recording_trains_replays_and_plays_back(checkpoint, tmp_p
     capsys.readouterr()
     assert main(["replay", str(bag), "--checkpoint", str(checkpoint)]) == 0
     out = capsys.readouterr().out
-    assert "replayed 3 episodes" in out and "left out: 1 cut" in out
+    assert "replayed 3 episodes" in out and "episodes that did not end complete: 1 cut (not replayed)" in out
     assert main(["verify", str(bag), "--quiet"]) == 0
     out = capsys.readouterr().out
     assert "verified 3 examples: 0 mismatch(es) (3 recorded episodes replayed, not re-planned)" in out
-    assert "episodes that did not end complete (not checked): 1 cut" in out
+    assert "episodes that did not end complete: 1 cut (not checked)" in out
     assert main(["verify", str(bag), "--quiet", "--include-incomplete"]) == 0
-    assert "verified 4 examples" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "verified 4 examples" in out and "episodes that did not end complete: 1 cut (checked: 1 cut)" in out
+    assert main(["evaluate", "--checkpoint", str(checkpoint), "--data", str(bag), "--out", str(tmp_path / "ev"),
+                 "--quiet"]) == 1  # the test splits by default: a recording says where its episodes are
+    assert "a recording's episodes are in split live (--splits live)" in capsys.readouterr().err
 
     # `/command` played back into a fresh stack, in order, gives the same episodes.
     again = tmp_path / "again"

@@ -62,6 +62,16 @@ def test_train_resume_evaluate(dataset, tmp_path, kind):
     assert "| C | moves_target |" in (out / "results.md").read_text()
 
 
+def test_resume_takes_the_runs_own_settings(dataset, tmp_path):
+    """`--resume` without --config starts from RUN_DIR/config.yaml: only the budget needs saying."""
+    run = tmp_path / "run"
+    assert run_train(dataset, run, "--set", "max_updates=1", "--set", "parser=dependency") == 0
+    assert main(["train", "--data", str(dataset), "--out", str(run), "--quiet", "--resume",
+                 "--set", "max_updates=2"]) == 0
+    ckpt = read_checkpoint(run / "last.pt")
+    assert (ckpt["step"], ckpt["parser"]) == (2, "dependency")
+
+
 def test_resume_with_another_parser_is_refused(dataset, tmp_path, capsys):
     run = tmp_path / "run"
     assert run_train(dataset, run, "--set", "max_updates=1") == 0

@@ -64,13 +64,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"  {split:<16} {stats['exact_match']:6.2f}%  of {stats['examples']} episodes"
               + (f"  (failed: {failed})" if failed else ""))
     if args.max_episodes is None:
-        outcomes: dict[str, int] = {}
-        for reader in readers:
-            for outcome, n in reader.report.outcomes.items():
-                outcomes[outcome] = outcomes.get(outcome, 0) + n
-        if outcomes:
-            kept = "replayed" if args.include_incomplete else "left out"
-            print(f"{kept}: " + ", ".join(f"{n} {outcome}" for outcome, n in sorted(outcomes.items())))
+        from gscan_ros.data.bag_report import incomplete_line
+
+        line = incomplete_line(readers, episodes if args.include_incomplete else None, "replayed")
+        if line:
+            print(line)
     for reader in readers:
         if reader.report.finished and not reader.report.complete:
             print(f"warning: {reader.report.summary()}")

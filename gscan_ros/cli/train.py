@@ -17,7 +17,7 @@ def register(subparsers) -> None:
         "(DistributedDataParallel, each a shard of every batch; docs/scaling.md).",
     )
     p.add_argument("--config", type=existing_file, metavar="FILE",
-                   help="YAML training config (default: built-in defaults)")
+                   help="YAML training config (default: built-in defaults; with --resume, RUN_DIR/config.yaml)")
     p.add_argument("--data", required=True, type=existing_path, metavar="DIR",
                    help="dataset directory/file (dataset.txt or bags)")
     p.add_argument("--out", type=output_dir, default="runs/train", metavar="RUN_DIR",
@@ -45,7 +45,10 @@ def run(args: argparse.Namespace) -> int:
     from gscan_ros.training.trainer import train
 
     overrides = [*args.overrides, *(["include_incomplete=true"] if args.include_incomplete else [])]
-    cfg = TrainConfig.load(args.config, overrides)
+    config = args.config
+    if config is None and args.resume and (args.out / "config.yaml").is_file():
+        config = args.out / "config.yaml"  # the run's own settings; --set changes its budget or threads
+    cfg = TrainConfig.load(config, overrides)
     # This machine's limit, not the config's: a run resumed elsewhere takes `--set threads=N`.
     check_cpu_count(cfg.threads, "threads", ConfigError)
     with joined(args.device) as ranks:

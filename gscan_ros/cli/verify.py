@@ -98,8 +98,11 @@ def run(args: argparse.Namespace) -> int:
     if args.limit is not None:
         episodes = itertools.islice(episodes, args.limit)
     checked = mismatches = live = 0
+    taken = []  # the recorded episodes that did not end complete, checked (--include-incomplete)
     for episode in tqdm(episodes, unit="ex", desc="verify", disable=args.quiet):
         checked += 1
+        if episode.meta.get("outcome", es.COMPLETE) != es.COMPLETE:
+            taken.append(episode)
         recorded = episode.split == LIVE_SPLIT or episode.meta.get("outcome", es.COMPLETE) != es.COMPLETE
         live += recorded
         reason = check_episode(episode, replan=not recorded)
@@ -116,14 +119,11 @@ def run(args: argparse.Namespace) -> int:
         raise DatasetFormatError(f"{args.dataset}: no episodes found" + (f" ({summaries})" if summaries else ""))
     print(f"verified {checked} examples: {mismatches} mismatch(es)"
           + (f" ({live} recorded episodes replayed, not re-planned)" if live else ""))
-    outcomes: dict[str, int] = {}
-    for reader in readers or []:
-        for outcome, n in reader.report.outcomes.items():
-            outcomes[outcome] = outcomes.get(outcome, 0) + n
-    if outcomes:
-        kept = "checked" if args.include_incomplete else "not checked"
-        print("episodes that did not end complete (" + kept + "): "
-              + ", ".join(f"{n} {outcome}" for outcome, n in sorted(outcomes.items())))
+    from gscan_ros.data.bag_report import incomplete_line
+
+    line = incomplete_line(readers or [], taken if args.include_incomplete else None, "checked")
+    if line:
+        print(line)
     losses = [_loss(reader) for reader in readers or []]
     losses = [line for line in losses if line]
     for line in losses:

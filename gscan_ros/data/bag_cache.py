@@ -148,6 +148,9 @@ def _cache_key(bag_dir: Path) -> str:
     return "|".join(parts)
 
 
+_WARNED: set = set()  # the cache keys whose damage was logged in this process
+
+
 def load_episode_cache(
     bag_dir: str | os.PathLike, splits: Iterable[str] | None = None, *, rebuild: bool = False,
     include_incomplete: bool = False,
@@ -158,8 +161,9 @@ def load_episode_cache(
     `include_incomplete` (recorded episodes that ended cut, preempted or rejected). A bag whose
     directory is read-only is decoded without writing the cache (logged). An unreadable
     cache file is rebuilt (logged). If the bag was damaged or lost episodes when the
-    cache was built, every call logs a warning saying how many (`cache.complete`,
-    `cache.lost_episodes`, `cache.source`).
+    cache was built, the first load of it in a process logs a warning saying how many
+    (training loads the train and the dev split of one bag: one warning); every cache
+    says so too (`cache.complete`, `cache.lost_episodes`, `cache.source`).
     """
     bag_dir = Path(bag_dir)
     key = _cache_key(bag_dir)
@@ -169,7 +173,8 @@ def load_episode_cache(
         arrays = _decode(bag_dir, key)
         _save(path, arrays)
     source = json.loads(arrays["source"].tobytes())
-    if not source["complete"]:
+    if not source["complete"] and key not in _WARNED:
+        _WARNED.add(key)
         bound = BagReadReport.bound(source["exact"])
         log.warning(
             "%s: episode cache built from a damaged bag: %s%d episodes lost (%s); "

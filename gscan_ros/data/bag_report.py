@@ -161,3 +161,32 @@ class BagReadReport:
     def bound(exact: bool) -> str:
         """'' before an exact count, 'at least ' before a lower bound."""
         return "" if exact else "at least "
+
+
+def incomplete_line(readers, taken: list | None, verb: str) -> str | None:
+    """One line on the recorded episodes of `readers` (finished BagEpisodeReaders) that did
+    not end complete, by outcome, and which of them a command `verb` (`taken`: the episodes
+    it took, each with `meta["outcome"]`; None: it took none of them). A command refused
+    before any episode began is counted but is no episode to take. None when there are none."""
+    total: dict[str, int] = {}
+    for reader in readers:
+        for outcome, n in reader.report.outcomes.items():
+            total[outcome] = total.get(outcome, 0) + n
+    if not total:
+        return None
+    line = "episodes that did not end complete: " + _by_outcome(total)
+    if taken is None:
+        return f"{line} (not {verb})"
+    took: dict[str, int] = {}
+    for episode in taken:
+        outcome = episode.meta.get("outcome")
+        if outcome is not None:
+            took[outcome] = took.get(outcome, 0) + 1
+    never = sum(total.values()) - sum(took.values())
+    detail = f"{verb}: {_by_outcome(took) or 'none'}"
+    return f"{line} ({detail}" + (f"; {never} refused before any action, nothing to take" if never else "") + ")"
+
+
+def _by_outcome(counts: dict[str, int]) -> str:
+    return ", ".join(f"{n} {outcome}" for outcome, n in sorted(counts.items()))
+

@@ -16,6 +16,7 @@ import os
 from pathlib import Path
 from typing import Callable, Iterable, Iterator, Mapping
 
+from gscan_ros.data.bag_format import LIVE_SPLIT
 from gscan_ros.data.episode import Episode
 from gscan_ros.data.splits import require_splits
 from gscan_ros.errors import DatasetFormatError
@@ -247,7 +248,13 @@ def select_test_episodes(path: str | os.PathLike, splits: list[str] | None, max_
     for ep in iter_test_episodes(path, splits):
         by_split.setdefault(ep.split, []).append(ep)
     if not by_split:
-        raise DatasetFormatError(f"{str(path)!r} has none of the splits {list(splits or ALL_TEST_SPLITS)}")
+        bags = select_bags(path) is not None
+        counts = bag_splits(path) if bags else None  # None for a bag that does not count its splits
+        has = f" (it has: {', '.join(s for s, n in counts.items() if n) or 'none'})" if counts else ""
+        recorded = bags and (counts is None or LIVE_SPLIT in counts)
+        raise DatasetFormatError(f"{str(path)!r} has none of the splits {list(splits or ALL_TEST_SPLITS)}{has}"
+                                 + (f"; a recording's episodes are in split {LIVE_SPLIT} (--splits {LIVE_SPLIT})"
+                                    if recorded else ""))
     episodes: list[Episode] = []
     for eps in by_split.values():
         if max_examples and len(eps) > max_examples:

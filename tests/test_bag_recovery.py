@@ -253,6 +253,10 @@ def test_metadata_problems_name_the_file(small_chunk_bag, tmp_path):
     (bag / "metadata.yaml").write_text("rosbag2_bagfile_information: [unclosed")
     with pytest.raises(DatasetFormatError, match="metadata.yaml is not valid YAML"):
         read_bag_info(bag)
+    for empty in ("", "rosbag2_bagfile_information:", "- a list"):  # no Python internals in the message
+        (bag / "metadata.yaml").write_text(empty)
+        with pytest.raises(DatasetFormatError, match="metadata.yaml: not rosbag2 metadata"):
+            read_bag_info(bag)
     (bag / "metadata.yaml").write_text("rosbag2_bagfile_information: {version: 9}")
     with pytest.raises(DatasetFormatError, match="metadata.yaml: missing rosbag2 key 'storage_identifier'"):
         read_bag_info(bag)

@@ -138,6 +138,13 @@ BAD_ARGUMENTS = [
     ("explain --progression {missing} --out {tmp}/a.png", "--progression"),
     ("explain --metrics --data {data} --progression {file}", "--progression"),
     ("explain --out {tmp}/a.png --device gpu", "--device"),
+    # options the mode would not use: refused, not ignored
+    ("explain --metrics --data {data} --step 3", "--step"),
+    ("explain --metrics --data {data} --index 3", "--index"),
+    ("explain --out {tmp}/a.png --max-examples 5", "--max-examples"),
+    ("explain --out {tmp}/a.png --fps 9", "--fps"),
+    ("explain --out {tmp}/a.png --seed 3 --split visual", "--split"),
+    ("explain --out {tmp}/a.png --max-columns 4", "--max-columns"),
     ("explain --out /proc/a.png", "while writing /proc/a.png: No such file or directory (/proc/.a.png.lock)"),
     (f"explain --out {{tmp}}/a.png --threads {CPUS + 1}", f"only {CPUS} CPU(s)"),
     # replay

@@ -49,8 +49,8 @@ def register(subparsers) -> None:
                         help="a gSCAN situation JSON (or an object with a 'situation' key)")
     source.add_argument("--seed", type=nonnegative_int, metavar="N",
                         help="a random situation for the command (default: seed 0)")
-    p.add_argument("--split", default="test", help="split of --data (default: test)")
-    p.add_argument("--index", type=nonnegative_int, default=0, help="example index in --split (default: 0)")
+    p.add_argument("--split", default=None, help="split of --data (default: test)")
+    p.add_argument("--index", type=nonnegative_int, default=None, help="example index in --split (default: 0)")
     p.add_argument("--checkpoint", type=existing_file, metavar="CKPT", help="checkpoint (default: the shipped model)")
     when = p.add_mutually_exclusive_group()
     when.add_argument("--step", type=nonnegative_int, default=None, metavar="T",
@@ -59,17 +59,18 @@ def register(subparsers) -> None:
                       help="an animated GIF with every step (also implied by --out F.gif)")
     p.add_argument("--out", type=output_file(".png", ".gif"), metavar="FILE", help="the figure, .png or .gif")
     p.add_argument("--overwrite", action="store_true", help="replace FILE if it exists")
-    p.add_argument("--fps", type=int_in(1, MAX_FPS), default=2, help="GIF frames per second (default: 2)")
+    p.add_argument("--fps", type=int_in(1, MAX_FPS), default=None, help="GIF frames per second (default: 2)")
     p.add_argument("--progression", type=existing_dir, metavar="RUN_DIR",
                    help="a training run with step_<N>.pt snapshots: Fig. 4, or the metrics along training")
-    p.add_argument("--max-columns", type=int_in(2, 40), default=8,
+    p.add_argument("--max-columns", type=int_in(2, 40), default=None,
                    help="--progression: at most this many snapshots, evenly spaced (default: 8)")
     p.add_argument("--metrics", action="store_true", help="print localization and size-ordering numbers for --data")
     p.add_argument("--splits", nargs="+", metavar="SPLIT", help="--metrics: splits (default: every test split present)")
-    p.add_argument("--max-examples", type=nonnegative_int, default=1000, metavar="N",
+    p.add_argument("--max-examples", type=nonnegative_int, default=None, metavar="N",
                    help="--metrics: seeded subset of N episodes per split, as `evaluate --max-examples` (0 = all; "
                         "default: 1000)")
-    p.add_argument("--batch-size", type=positive_int, default=512, help="--metrics: episodes per batch (default: 512)")
+    p.add_argument("--batch-size", type=positive_int, default=None,
+                   help="--metrics: episodes per batch (default: 512)")
     p.add_argument("--threads", type=thread_count, default=0,
                    help="torch threads (0 = torch default; at most the CPUs available)")
     add_device_argument(p)
@@ -90,16 +91,40 @@ def run(args: argparse.Namespace) -> int:
         return (_progression if args.progression else _figure)(args, tmp)
 
 
+DEFAULTS = {"split": "test", "index": 0, "fps": 2, "max_columns": 8, "max_examples": 1000, "batch_size": 512}
+
+
+def _refuse_unused(args: argparse.Namespace, names: tuple[str, ...], why: str) -> None:
+    """Options this mode would not use are refused, not ignored."""
+    given = [f"--{name.replace('_', '-')}" for name in names if getattr(args, name) is not None]
+    if given:
+        raise GscanError(f"{' '.join(given)}: not used {why}")
+
+
 def _check_combination(args: argparse.Namespace) -> None:
-    """Arguments that only make sense together (one line, exit 1, before any work)."""
+    """Arguments that only make sense together (one line, exit 1, before any work); then
+    the defaults of the options the mode uses."""
+    _check_modes(args)
+    for name, value in DEFAULTS.items():
+        if getattr(args, name) is None:
+            setattr(args, name, value)
+
+
+def _check_modes(args: argparse.Namespace) -> None:
     if args.progression and args.checkpoint:
         raise GscanError("--progression reads the run's own snapshots; it takes no --checkpoint")
+    if not args.progression:
+        _refuse_unused(args, ("max_columns",), "without --progression")
     if args.metrics:
         if args.data is None:
             raise GscanError("--metrics needs --data DS (the episodes to measure on)")
         if args.command_text or args.out or args.gif:
             raise GscanError("--metrics prints numbers: it takes no COMMAND, --out or --gif")
+        _refuse_unused(args, ("step", "fps", "split", "index"), "by --metrics (it reads --splits of --data)")
         return
+    _refuse_unused(args, ("splits", "max_examples", "batch_size"), "without --metrics")
+    if args.data is None:
+        _refuse_unused(args, ("split", "index"), "without --data")
     if args.out is None:
         raise GscanError("--out FILE (.png or .gif) is required for a figure")
     is_gif = args.out.suffix.lower() == ".gif"
@@ -109,6 +134,8 @@ def _check_combination(args: argparse.Namespace) -> None:
         raise GscanError("--progression draws one .png (snapshots as columns); no GIF")
     if is_gif and args.step is not None:
         raise GscanError(f"--step draws one step as a .png; the GIF {args.out} shows every step")
+    if not is_gif:
+        _refuse_unused(args, ("fps",), f"for the .png {args.out}")
     args.step = args.step or 0
     if args.situation and not args.command_text:
         raise GscanError("--situation needs a COMMAND")
@@ -128,7 +155,11 @@ def _episode(args: argparse.Namespace, grid_size: int):
         return args.command_text or episode.command, episode.situation, list(episode.actions) if same else None
     if args.situation is not None:
         data = read_json(args.situation, f"--situation {args.situation}", GscanError)
-        situation = Situation.from_json(data["situation"] if isinstance(data, dict) and "situation" in data else data)
+        try:
+            situation = Situation.from_json(data["situation"] if isinstance(data, dict) and "situation" in data
+                                            else data)
+        except GscanError as exc:
+            raise GscanError(f"--situation {args.situation}: {exc}") from None
         return args.command_text, situation, None
     from gscan_ros.data.sources import sample_episode
 

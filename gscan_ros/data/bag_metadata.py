@@ -205,7 +205,10 @@ def read_bag_info(bag_dir: str | os.PathLike) -> BagInfo:
             f"{len(on_disk)} .mcap file(s) in name order{lost}; `gscan-ros bag repair {bag_dir} --out NEW` "
             f"writes a complete bag with one",))
     try:
-        info = read_yaml(path, str(path), DatasetFormatError, MAX_METADATA_BYTES)["rosbag2_bagfile_information"]
+        document = read_yaml(path, str(path), DatasetFormatError, MAX_METADATA_BYTES)
+        if not isinstance(document, dict) or not isinstance(document.get("rosbag2_bagfile_information"), dict):
+            raise DatasetFormatError(f"{path}: not rosbag2 metadata (no rosbag2_bagfile_information mapping)")
+        info = document["rosbag2_bagfile_information"]
         storage = info["storage_identifier"]
         if storage != STORAGE_ID:
             raise DatasetFormatError(f"{path}: storage {quoted(storage)} is not supported (only {STORAGE_ID!r})")

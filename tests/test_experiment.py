@@ -559,6 +559,8 @@ BAD_PLANS = [
     ({"datasets": {"tiny": {"augment": "mixup"}}}, "datasets.tiny.augment"),
     ({"datasets": {"tiny": {"augment_seed": 1}}}, "datasets.tiny.augment_seed needs"),
     ({"datasets": {"tiny": {"augment": "geca", "path": "data"}}}, "a path: dataset is used as it is"),
+    ({"datasets": {"tiny": {"path": "data", "examples": 5, "seed": 9}}},
+     "datasets.tiny.examples, datasets.tiny.seed would generate one"),
     ({"defaults": {"seed": 3}}, "defaults.seed"),
     ({"defaults": {"learning_rate": 3}}, "learning_rate"),
     ({"runs": [{"name": "x", "config": "{config}", "data": "tiny", "seeds": [0], "set": {"model.rnn_dim": -1}}]},
@@ -849,11 +851,12 @@ def test_report_is_byte_identical_and_refuses_to_overwrite(results, tmp_path, ca
     ("best_dev_exact_match", "x", "best_dev_exact_match must be a finite number or null, got 'x'"),
     ("title", [1], "title must be a string, got [1]"),
     ("paper_column", ["a"], "paper_column must be a string or null, got ['a']"),
-    ("seed", 1e400, "seed must be an integer, got inf"),
+    ("seed", 1e400, "seed must be an integer >= 0, got inf"),
+    ("updates", -5, "updates must be an integer >= 0, got -5"),
     ("data", {"split_kind": "length", "cut_off_target_length": [14]}, "data.cut_off_target_length"),
     ("evaluation", {"max_examples": 1e400}, "evaluation.max_examples must be an integer"),
     ("splits", {"test": split("A", 50.0) | {"by_target_length": {"9": {"exact_match": 50.0, "examples": "4"}}}},
-     "splits.test.by_target_length.9.examples must be an integer, got '4'"),
+     "splits.test.by_target_length.9.examples must be an integer >= 0, got '4'"),
 ])
 def test_report_names_a_results_json_of_the_wrong_shape(results, tmp_path, capsys, field, value, named):
     path = results[0] / "state_s0" / "results.json"

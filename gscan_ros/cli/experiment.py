@@ -92,6 +92,6 @@ def run(args: argparse.Namespace) -> int:
     print(f"{who}{len(outcome.done)} done, {len(outcome.failed)} failed, "
           f"{len(outcome.skipped)} left to others or stale")
     if outcome.failed:
-        raise ExperimentError(f"{len(outcome.failed)} run(s) failed ({', '.join(outcome.failed)}); their "
-                              "train.log / evaluate.log say why; run again to retry")
+        raise ExperimentError(f"{len(outcome.failed)} run(s) failed ({', '.join(outcome.failed)}); the FAILED "
+                              "lines above name the log that says why; run again to retry")
     return 0

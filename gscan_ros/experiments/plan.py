@@ -263,6 +263,11 @@ def _dataset(name, spec, where: str) -> DataRecipe:
         if not isinstance(value, kinds) or (isinstance(value, bool) and bool not in kinds):
             raise PlanError(f"{where}: {key}.{field_name} has the wrong type: {quoted(value)}")
         values[field_name] = value
+    if "path" in values:  # a given dataset: the keys that generate one would be ignored
+        generating = sorted(set(values) - {"path", "split_kind", "augment", "augment_seed", "keep_held_out"})
+        if generating:
+            raise PlanError(f"{where}: {key} is given by path; {', '.join(f'{key}.{k}' for k in generating)} "
+                            f"would generate one (drop them, or drop path)")
     kind = values.get("split_kind", "compositional")
     if kind not in SPLIT_KINDS:
         raise PlanError(f"{where}: {key}.split_kind must be one of {list(SPLIT_KINDS)}, got {quoted(kind)}")

@@ -352,8 +352,10 @@ class Runner:
         overwrite = bool(leftovers)  # an interrupted generation of ours (generate.log is ours): replaced
         if recipe.augment is None:
             self._call(self._generate_command(recipe, directory, overwrite), log, lock)
-            warm = ("import sys\nfrom gscan_ros.training.trainer import split_cache\n"
-                    "for split in sys.argv[2:]:\n    split_cache(sys.argv[1], split)\n")
+            warm = ("import sys\nfrom gscan_ros.errors import GscanError\n"
+                    "from gscan_ros.training.trainer import split_cache\n"
+                    "try:\n    for split in sys.argv[2:]:\n        split_cache(sys.argv[1], split)\n"
+                    "except GscanError as exc:\n    sys.exit(f'error: {exc}')\n")
             self._call([sys.executable, "-c", warm, str(directory), "train", "dev"], log, lock, "decode-once caches")
         else:
             base = augment_base(directory)

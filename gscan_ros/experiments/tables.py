@@ -134,6 +134,7 @@ def _read_run(path: Path) -> RunResult:
 _KINDS = {
     "a string": lambda v: isinstance(v, str),
     "an integer": lambda v: isinstance(v, int) and not isinstance(v, bool),
+    "an integer >= 0": lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0,
     "a finite number": lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v),
     "a mapping": lambda v: isinstance(v, dict),
 }
@@ -142,13 +143,13 @@ _KINDS = {
 # mapping, its own schema; "*" stands for every key of a mapping, and a key ending in "?"
 # may be missing or null. Other keys are not read, so they are not checked.
 _SPLIT = {
-    "letter": "a string", "exact_match": "a finite number", "examples": "an integer",
-    "failures?": {"*": "an integer"},
-    "by_target_length?": {"*": {"exact_match": "a finite number", "examples": "an integer"}},
+    "letter": "a string", "exact_match": "a finite number", "examples": "an integer >= 0",
+    "failures?": {"*": "an integer >= 0"},
+    "by_target_length?": {"*": {"exact_match": "a finite number", "examples": "an integer >= 0"}},
 }
 _RESULTS = {
     "run": "a string", "column": "a string", "title": "a string", "paper_column?": "a string",
-    "seed": "an integer", "updates": "an integer", "max_updates": "an integer",
+    "seed": "an integer >= 0", "updates": "an integer >= 0", "max_updates": "an integer >= 0",
     "best_dev_exact_match?": "a finite number", "max_train_target_length?": "an integer",
     "data": {"split_kind?": "a string", "k_shot?": "an integer", "cut_off_target_length?": "an integer"},
     "splits": {"*": _SPLIT},
@@ -672,7 +673,8 @@ def plot_curves(runs: list[RunResult], path: Path) -> None:
         ax.xaxis.set_major_locator(MaxNLocator(5))
         ax.xaxis.set_major_formatter(thousands)  # 160,000-update runs beside 40,000-update ones
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7, loc="lower right")
+        if ax.get_legend_handles_labels()[1]:  # a group whose runs logged no validation has no line
+            ax.legend(fontsize=7, loc="lower right")
     for ax in axes.flat[len(groups):]:
         ax.axis("off")
     for ax in axes[:, 0]:

@@ -64,6 +64,23 @@ def test_schedule_is_applied_and_resumed(dataset, tmp_path):
     assert lrs == pytest.approx([0.004, 0.004, 0.0025, 0.001, 0.001])
 
 
+def test_a_resumed_run_logs_the_losses_of_the_run_left_unstopped(dataset, tmp_path):
+    """A checkpoint between two `train` records keeps the updates since the first: the next
+    record after the resume means them too, as in the run left unstopped."""
+    torch.set_num_threads(1)
+    common = ["--set", "log_every=4", "--set", "validate_every=6", "--set", "checkpoint_every=6"]
+    straight, resumed = tmp_path / "straight", tmp_path / "resumed"
+    assert run_train(dataset, straight, *common, "--set", "max_updates=12") == 0
+    assert run_train(dataset, resumed, *common, "--set", "max_updates=6") == 0  # stops mid-window (5..8)
+    assert run_train(dataset, resumed, *common, "--set", "max_updates=12", "--resume") == 0
+
+    def losses(run):
+        return [(r["step"], r["loss"]) for r in map(json.loads, (run / "metrics.jsonl").read_text().splitlines())
+                if r["event"] == "train"]
+
+    assert losses(resumed) == losses(straight) and [s for s, _ in losses(straight)] == [4, 8, 12]
+
+
 def test_a_resume_may_not_move_the_end_of_the_decay(dataset, tmp_path, capsys):
     """With `decay_updates` 0 the decay ends at `max_updates`: a resume with another budget
     would bend the schedule under the run, so it is refused; with its own end it may grow."""

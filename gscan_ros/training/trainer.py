@@ -294,6 +294,7 @@ class Run:
         self.best_unsaved = False  # a validation improved on the best; `save_resume_point` writes best.pt
         self.last_metrics: dict = {}
         self.screen_resume: dict | None = None  # a screen stopped between candidates (`resume`)
+        self.window = _LossWindow()  # the updates since the last `train` record (kept in last.pt)
         self.fresh_start(cfg.seed)
 
     def load_dev(self, data: str) -> None:
@@ -337,6 +338,8 @@ class Run:
         self.best_step = ckpt.get("best_step")
         self.elapsed_before = float(ckpt.get("elapsed_s", 0.0))
         self.last_metrics = dict(ckpt.get("metrics") or {})  # a stop after the last validation: not redone
+        # The updates since the last `train` record: that record logs them as the run left unstopped would.
+        self.window = _LossWindow(**ckpt.get("loss_window", {}))
         _restore_rng(ckpt["rng"], self.ranks.device)
         if "screen" in ckpt:  # stopped during the seed screen: it goes on at the next candidate
             self.screen_resume = {**ckpt["screen"], "rng": ckpt["rng"]}
@@ -378,7 +381,7 @@ class Run:
         if cfg.screen_seeds > 1 and (self.step == 0 or self.screen_resume):
             self.screen()
             self.checkpoint(self.files.last, self.last_metrics, training_state=True)  # screening is not redone
-        window = _LossWindow()
+        window = self.window
         bar = tqdm(total=cfg.max_updates, initial=self.step, desc="training", unit="upd", disable=not self.progress)
         batches = iterate_batches(self.store, cfg.batch_size_at(self.step), cfg.batching, self.seed, self.cursor,
                                   self.repeats)
@@ -401,7 +404,7 @@ class Run:
             if self.step % cfg.log_every == 0:
                 line = self.log_train(window)
                 bar.set_postfix(loss=f"{line['loss']:.3f}", ex_s=f"{line['examples_per_s']:.0f}")
-                window = _LossWindow()
+                window = self.window = _LossWindow()
             # Rank 0's clock and validations decide for every rank, so all stop at the same update.
             out_of_time = bool(budget_s) and ranks.from_main(lambda: self.elapsed() >= budget_s)
             reached = False
@@ -482,11 +485,15 @@ class Run:
         now = time.time()
         line = {"event": "train", "step": self.step, "epoch": self.cursor.epoch, "loss": window.mean_loss(),
                 "examples_per_s": window.rate(now), "mean_batch": window.examples / window.updates,
-                "elapsed_s": self.elapsed_before + now - self.started,
-                "lr": self.optimizer.param_groups[0]["lr"]}
+                "elapsed_s": self.elapsed_before + now - self.started, "lr": self.next_lr()}
         if self.ranks.is_main:
             append_event(self.files.metrics, line)
         return line
+
+    def next_lr(self) -> float:
+        """The learning rate of the next update, `lr * lr_factor(step)`: what a record logs
+        after update `step` (as torch's `scheduler.get_last_lr()` after `scheduler.step()`)."""
+        return self.optimizer.param_groups[0]["lr"]
 
     def reached_target(self, dev_exact_match: float) -> bool:
         return bool(self.cfg.target_dev_exact_match) and dev_exact_match >= self.cfg.target_dev_exact_match
@@ -497,7 +504,7 @@ class Run:
         res = evaluate_episodes(self.policy, self.dev_eps, batch_size=self.cfg.eval_batch_size)
         metrics = {"step": self.step, "dev_exact_match": res.exact_match, "dev_token_accuracy": res.token_accuracy,
                    "dev_examples": len(self.dev_eps), "elapsed_s": round(self.elapsed(), 2),
-                   "lr": self.optimizer.param_groups[0]["lr"], "dev_by_group": exact_match_by_group(res.predictions)}
+                   "lr": self.next_lr(), "dev_by_group": exact_match_by_group(res.predictions)}
         if res.exact_match > self.best or not self.files.best.exists():
             # Without best.pt (lost since the resume), these weights become it, and its score with them.
             self.best, self.best_step, self.best_unsaved = res.exact_match, self.step, True
@@ -527,7 +534,8 @@ class Run:
             extra = {"train_config": self.cfg.resolved(), "optimizer": _to_cpu(run.optimizer.state_dict()),
                      "rng": screened["rng"] if screened else _rng_state(self.ranks.device),
                      "cursor": {"epoch": run.cursor.epoch, "batch": run.cursor.batch}, "train_seed": run.seed,
-                     "best_dev_exact_match": self.best, "best_step": self.best_step, "elapsed_s": self.elapsed()}
+                     "best_dev_exact_match": self.best, "best_step": self.best_step, "elapsed_s": self.elapsed(),
+                     "loss_window": self.window.state()}
         if screen:
             extra["screen"] = screen
         save_checkpoint(path, checkpoint_dict(run.model, parser=self.cfg.parser, lexicon=self.lexicon,
@@ -549,13 +557,19 @@ class Run:
 class _LossWindow:
     """Loss and examples of the updates since the last `train` record."""
 
-    def __init__(self):
-        self.loss, self.examples, self.updates, self.since = 0.0, 0, 0, time.time()
+    def __init__(self, loss: float = 0.0, examples: int = 0, updates: int = 0):
+        self.loss, self.examples, self.updates, self.since = loss, examples, updates, time.time()
+        self.timed = 0  # examples trained on since `since` (a resumed window's earlier ones are not)
         self.paused = 0.0  # seconds of validation and checkpoints within the window
+
+    def state(self) -> dict:
+        """What a resume needs to go on with the window (its clock starts afresh)."""
+        return {"loss": self.loss, "examples": self.examples, "updates": self.updates}
 
     def add(self, loss: float, examples: int) -> None:
         self.loss += loss
         self.examples += examples
+        self.timed += examples
         self.updates += 1
 
     def mean_loss(self) -> float:
@@ -563,7 +577,7 @@ class _LossWindow:
 
     def rate(self, now: float) -> float:
         """Examples per second of training (validation and checkpoints left out)."""
-        return self.examples / max(now - self.since - self.paused, 1e-9)
+        return self.timed / max(now - self.since - self.paused, 1e-9)
 
 
 def _read_resume_checkpoint(files: RunFiles, cfg: TrainConfig, data: str, train_examples: int) -> dict:

@@ -30,7 +30,9 @@ def register(subparsers) -> None:
     parser.add_argument("--splits", nargs="+", default=None, metavar="SPLIT", help="only episodes of these splits")
     parser.add_argument("--batch-size", type=positive_int, default=64, help="episodes decoded together")
     parser.add_argument("--include-incomplete", action="store_true",
-                        help="also replay recorded episodes that ended cut, preempted or rejected")
+                        help="also replay recorded episodes that ended cut, preempted or rejected (their "
+                             "actions are what was done before the stop: a model that goes on past a cut "
+                             "at the recording's max_steps, or a preemption, does not match them)")
     parser.set_defaults(func=run)
 
 

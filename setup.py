@@ -21,7 +21,6 @@ setup(
         (f"share/{PACKAGE}", ["package.xml"]),
         (f"share/{PACKAGE}/launch", glob("launch/*.py")),
         (f"share/{PACKAGE}/config", glob("config/*.yaml") + glob("config/*.xml") + glob("config/*.json")),
-        (f"share/{PACKAGE}/models", glob("gscan_ros/assets/*.pt")),
         (f"lib/{PACKAGE}", glob("scripts/*")),
     ],
     python_requires=">=3.11",

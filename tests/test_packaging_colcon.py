@@ -86,9 +86,9 @@ def test_colcon_install_ships_the_default_model_when_the_repo_has_one(colcon_ins
     shipped = Path(__file__).resolve().parents[1] / "gscan_ros/assets/default_model.pt"
     if not shipped.is_file():
         pytest.skip("no gscan_ros/assets/default_model.pt in this checkout")
-    for installed in (colcon_install / "share" / PACKAGE / "models/default_model.pt",
-                      colcon_install / SITE / "gscan_ros/assets/default_model.pt"):
-        assert installed.read_bytes() == shipped.read_bytes(), installed
+    installed = colcon_install / SITE / "gscan_ros/assets/default_model.pt"  # the one copy the nodes load
+    assert installed.read_bytes() == shipped.read_bytes()
+    assert not (colcon_install / "share" / PACKAGE / "models").exists()
 
 
 def test_ros2_run_parser_node_from_the_colcon_install_starts_and_stops_on_sigint(colcon_install, tmp_path):

@@ -21,6 +21,7 @@ ROS_PACKAGES = {"actionlib_msgs", "ament_index_python", "builtin_interfaces", "d
 ROSDISTRO_KEYS = ROS_PACKAGES | {
     "mcap-ros2-support", "python3-hypothesis", "python3-matplotlib", "python3-numpy", "python3-pil",
     "python3-pytest", "python3-rosbags-pip", "python3-setuptools", "python3-torch", "python3-tqdm", "python3-yaml",
+    "python3-pip", "python3-wheel",  # rosdep/python.yaml, checked 2026-12-07
 }
 # Top-level import name -> rosdep key (a ROS package is its own key).
 ROSDEP_KEYS = {package: package for package in ROS_PACKAGES} | {

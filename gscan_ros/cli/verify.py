@@ -101,9 +101,10 @@ def run(args: argparse.Namespace) -> int:
     taken = []  # the recorded episodes that did not end complete, checked (--include-incomplete)
     for episode in tqdm(episodes, unit="ex", desc="verify", disable=args.quiet):
         checked += 1
-        if episode.meta.get("outcome", es.COMPLETE) != es.COMPLETE:
+        incomplete = episode.meta.get("outcome", es.COMPLETE) != es.COMPLETE
+        if incomplete:
             taken.append(episode)
-        recorded = episode.split == LIVE_SPLIT or episode.meta.get("outcome", es.COMPLETE) != es.COMPLETE
+        recorded = episode.split == LIVE_SPLIT or incomplete
         live += recorded
         reason = check_episode(episode, replan=not recorded)
         if reason is None:

@@ -144,6 +144,24 @@ def test_cut_and_preempted_episodes_are_skipped_and_counted(outcomes):
     assert list(BagEpisodeReader(bag, splits=["train"], include_incomplete=True).records()) == []
 
 
+def test_the_outcome_line_tells_taken_episodes_from_those_outside_the_selection(outcomes):
+    """`verify`/`replay --include-incomplete --splits`: the cut and preempted episodes of
+    another split are outside the selection, not "refused before any action"."""
+    from gscan_ros.data.bag_report import incomplete_line
+
+    bag, _ = outcomes
+    everything = BagEpisodeReader(bag, include_incomplete=True)
+    list(everything.records())
+    assert everything.report.taken_outcomes == {"cut": 1, "preempted": 1}
+    assert incomplete_line([everything], "checked", included=True) == (
+        "episodes that did not end complete: 1 cut, 1 preempted (checked: 1 cut, 1 preempted)")
+    other_split = BagEpisodeReader(bag, splits=["train"], include_incomplete=True)
+    list(other_split.records())
+    assert other_split.report.taken_outcomes == {}
+    assert incomplete_line([other_split], "checked", included=True) == (
+        "episodes that did not end complete: 1 cut, 1 preempted (checked: none; 2 outside the selection)")
+
+
 def test_a_recording_begun_mid_episode_reads_complete(tmp_path):
     """`ros2 bag record -a` started while an episode runs: its tail and end report are the
     bag's prologue, not lost data; the next episode starts where that tail left the world."""

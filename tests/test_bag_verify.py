@@ -135,18 +135,22 @@ def test_a_bag_on_two_grid_sizes_fails(tmp_path, capsys):
                        "(3 on 6x6, 2 on 8x8); a dataset has one (`train` refuses it)")
 
 
-def test_the_outcome_line_counts_a_refused_command_but_does_not_claim_it_was_taken():
+def test_the_outcome_line_counts_a_refused_command_but_does_not_claim_it_was_taken(tmp_path):
     """A command refused before any episode began is a `rejected` outcome with no episode:
     `verify`/`replay --include-incomplete` cannot have checked or replayed it."""
     from types import SimpleNamespace
 
-    from gscan_ros.data.bag_report import incomplete_line
+    from gscan_ros.data.bag_report import BagReadReport, incomplete_line
 
-    readers = [SimpleNamespace(report=SimpleNamespace(outcomes={"cut": 2, "rejected": 1}))]
-    taken = [SimpleNamespace(meta={"outcome": "cut"})] * 2
-    assert incomplete_line(readers, taken, "checked") == (
+    report = BagReadReport(tmp_path)
+    for _ in range(2):
+        report.count_outcome("cut", taken=True)
+    report.count_refused()
+    readers = [SimpleNamespace(report=report)]
+    assert report.outcomes == {"cut": 2, "rejected": 1}
+    assert incomplete_line(readers, "checked", included=True) == (
         "episodes that did not end complete: 2 cut, 1 rejected (checked: 2 cut; 1 refused before any action, "
         "nothing to take)")
-    assert incomplete_line(readers, None, "replayed") == \
+    assert incomplete_line(readers, "replayed", included=False) == \
         "episodes that did not end complete: 2 cut, 1 rejected (not replayed)"
-    assert incomplete_line([SimpleNamespace(report=SimpleNamespace(outcomes={}))], [], "checked") is None
+    assert incomplete_line([SimpleNamespace(report=BagReadReport(tmp_path))], "checked", included=True) is None

@@ -171,3 +171,19 @@ def output_file(*suffixes: str) -> Callable[[str], Path]:
         return path
 
     return check
+
+
+# ------------------------------------------------------------------------------ combinations
+def refuse_unused(args: argparse.Namespace, names: tuple[str, ...], why: str) -> None:
+    """Refuse the options among `names` that were given (their default is None) but that
+    the chosen mode would not use; `why` completes "not used ..."."""
+    given = [f"--{name.replace('_', '-')}" for name in names if getattr(args, name) is not None]
+    if given:
+        raise GscanError(f"{' and '.join(given)}: not used {why}")
+
+
+def fill_defaults(args: argparse.Namespace, defaults: dict[str, object]) -> None:
+    """Give the options left at None (not given) their defaults, once the combination is checked."""
+    for name, value in defaults.items():
+        if getattr(args, name) is None:
+            setattr(args, name, value)

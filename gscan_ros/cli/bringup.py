@@ -8,7 +8,16 @@ from __future__ import annotations
 
 import argparse
 
-from gscan_ros.cli.args import existing_file, existing_path, int_in, nonnegative_int, output_dir, positive_int
+from gscan_ros.cli.args import (
+    existing_file,
+    existing_path,
+    fill_defaults,
+    int_in,
+    nonnegative_int,
+    output_dir,
+    positive_int,
+    refuse_unused,
+)
 from gscan_ros.errors import GscanError
 from gscan_ros.nodes.stack import StackOptions  # rclpy and torch are imported only when a stack starts
 from gscan_ros.world.types import GRID_SIZE, SUPPORTED_GRID_SIZES
@@ -53,15 +62,11 @@ def resolve_source_arguments(args: argparse.Namespace) -> None:
     """Refuse situation options the chosen source does not use (--split and --index name a
     dataset's examples; --seed and --grid-size sample worlds without one), then fill in the
     defaults of the others."""
-    unused = ("seed", "grid_size") if args.dataset is not None else ("split", "index")
-    given = [f"--{name.replace('_', '-')}" for name in unused if getattr(args, name) is not None]
-    if given:
-        source = ("--dataset serves its own examples" if args.dataset is not None
-                  else "without --dataset, worlds are sampled")
-        raise GscanError(f"{' and '.join(given)}: not used ({source})")
-    for name, value in SOURCE_DEFAULTS.items():
-        if getattr(args, name) is None:
-            setattr(args, name, value)
+    if args.dataset is not None:
+        refuse_unused(args, ("seed", "grid_size"), "(--dataset serves its own examples)")
+    else:
+        refuse_unused(args, ("split", "index"), "(without --dataset, worlds are sampled)")
+    fill_defaults(args, SOURCE_DEFAULTS)
 
 
 def stack_options(args: argparse.Namespace, **overrides) -> StackOptions:

@@ -24,10 +24,12 @@ from gscan_ros.cli.args import (
     existing_dir,
     existing_file,
     existing_path,
+    fill_defaults,
     int_in,
     nonnegative_int,
     output_file,
     positive_int,
+    refuse_unused,
     thread_count,
 )
 from gscan_ros.errors import GscanError
@@ -94,37 +96,28 @@ def run(args: argparse.Namespace) -> int:
 DEFAULTS = {"split": "test", "index": 0, "fps": 2, "max_columns": 8, "max_examples": 1000, "batch_size": 512}
 
 
-def _refuse_unused(args: argparse.Namespace, names: tuple[str, ...], why: str) -> None:
-    """Options this mode would not use are refused, not ignored."""
-    given = [f"--{name.replace('_', '-')}" for name in names if getattr(args, name) is not None]
-    if given:
-        raise GscanError(f"{' '.join(given)}: not used {why}")
-
-
 def _check_combination(args: argparse.Namespace) -> None:
     """Arguments that only make sense together (one line, exit 1, before any work); then
     the defaults of the options the mode uses."""
     _check_modes(args)
-    for name, value in DEFAULTS.items():
-        if getattr(args, name) is None:
-            setattr(args, name, value)
+    fill_defaults(args, DEFAULTS)
 
 
 def _check_modes(args: argparse.Namespace) -> None:
     if args.progression and args.checkpoint:
         raise GscanError("--progression reads the run's own snapshots; it takes no --checkpoint")
     if not args.progression:
-        _refuse_unused(args, ("max_columns",), "without --progression")
+        refuse_unused(args, ("max_columns",), "without --progression")
     if args.metrics:
         if args.data is None:
             raise GscanError("--metrics needs --data DS (the episodes to measure on)")
         if args.command_text or args.out or args.gif:
             raise GscanError("--metrics prints numbers: it takes no COMMAND, --out or --gif")
-        _refuse_unused(args, ("step", "fps", "split", "index"), "by --metrics (it reads --splits of --data)")
+        refuse_unused(args, ("step", "fps", "split", "index"), "by --metrics (it reads --splits of --data)")
         return
-    _refuse_unused(args, ("splits", "max_examples", "batch_size"), "without --metrics")
+    refuse_unused(args, ("splits", "max_examples", "batch_size"), "without --metrics")
     if args.data is None:
-        _refuse_unused(args, ("split", "index"), "without --data")
+        refuse_unused(args, ("split", "index"), "without --data")
     if args.out is None:
         raise GscanError("--out FILE (.png or .gif) is required for a figure")
     is_gif = args.out.suffix.lower() == ".gif"
@@ -135,7 +128,7 @@ def _check_modes(args: argparse.Namespace) -> None:
     if is_gif and args.step is not None:
         raise GscanError(f"--step draws one step as a .png; the GIF {args.out} shows every step")
     if not is_gif:
-        _refuse_unused(args, ("fps",), f"for the .png {args.out}")
+        refuse_unused(args, ("fps",), f"for the .png {args.out}")
     args.step = args.step or 0
     if args.situation and not args.command_text:
         raise GscanError("--situation needs a COMMAND")

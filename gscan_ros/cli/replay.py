@@ -68,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
     if args.max_episodes is None:
         from gscan_ros.data.bag_report import incomplete_line
 
-        line = incomplete_line(readers, episodes if args.include_incomplete else None, "replayed")
+        line = incomplete_line(readers, "replayed", included=args.include_incomplete)
         if line:
             print(line)
     for reader in readers:

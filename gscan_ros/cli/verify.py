@@ -98,12 +98,9 @@ def run(args: argparse.Namespace) -> int:
     if args.limit is not None:
         episodes = itertools.islice(episodes, args.limit)
     checked = mismatches = live = 0
-    taken = []  # the recorded episodes that did not end complete, checked (--include-incomplete)
     for episode in tqdm(episodes, unit="ex", desc="verify", disable=args.quiet):
         checked += 1
         incomplete = episode.meta.get("outcome", es.COMPLETE) != es.COMPLETE
-        if incomplete:
-            taken.append(episode)
         recorded = episode.split == LIVE_SPLIT or incomplete
         live += recorded
         reason = check_episode(episode, replan=not recorded)
@@ -122,7 +119,7 @@ def run(args: argparse.Namespace) -> int:
           + (f" ({live} recorded episodes replayed, not re-planned)" if live else ""))
     from gscan_ros.data.bag_report import incomplete_line
 
-    line = incomplete_line(readers or [], taken if args.include_incomplete else None, "checked")
+    line = incomplete_line(readers or [], "checked", included=args.include_incomplete)
     if line:
         print(line)
     losses = [_loss(reader) for reader in readers or []]

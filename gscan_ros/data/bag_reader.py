@@ -156,7 +156,7 @@ class BagEpisodeReader(Iterator[Episode]):
             if not self.stacks.is_stack(namespace):
                 continue  # another node's topics that share a stack topic's name and type
             for _ in range(assembler.rejected):
-                self.report.count_outcome(es.REJECTED)
+                self.report.count_refused()
             self.report.discarded_messages += assembler.dropped_messages
             for reason, count in assembler.dropped.items():
                 self.report.count_drop(reason, count)
@@ -179,7 +179,7 @@ class BagEpisodeReader(Iterator[Episode]):
         if done.outcome == es.COMPLETE:
             self.report.episodes_read += 1
         else:
-            self.report.count_outcome(done.outcome)
+            self.report.count_outcome(done.outcome, taken=record is not None)
         if record is not None:
             self.report.count_grid_size(record.episode.situation.grid_size)
             yield record
@@ -274,7 +274,7 @@ class BagEpisodeReader(Iterator[Episode]):
                 if done.outcome == es.COMPLETE:
                     self.report.episodes_read += 1
                 else:
-                    self.report.count_outcome(done.outcome)
+                    self.report.count_outcome(done.outcome, taken=record is not None)
                 if record is not None:
                     self.report.count_grid_size(record.episode.situation.grid_size)
                     yield record

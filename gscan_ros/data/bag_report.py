@@ -5,6 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from gscan_ros import episode_status as es
+
 
 @dataclass
 class BagReadReport:
@@ -23,6 +25,8 @@ class BagReadReport:
     # Episodes that ended other than complete (cut, preempted, rejected), by outcome: no
     # demonstrations, skipped unless asked for; whatever the split filter.
     outcomes: dict[str, int] = field(default_factory=dict)
+    refused_commands: int = 0  # of `outcomes`' rejected: commands refused before any episode began
+    taken_outcomes: dict[str, int] = field(default_factory=dict)  # of `outcomes`: those handed out (include_incomplete)
     incomplete_episodes: int = 0  # started, never properly ended (end of data, damage, a missing message)
     drop_reasons: dict[str, int] = field(default_factory=dict)  # why, where known (reason -> episodes)
     bad_messages: int = 0  # stack messages that could not be read (each lost; its episode dropped)
@@ -81,8 +85,16 @@ class BagReadReport:
         """Episodes that ended other than complete (`outcomes`)."""
         return sum(self.outcomes.values())
 
-    def count_outcome(self, outcome: str) -> None:
+    def count_outcome(self, outcome: str, *, taken: bool = False) -> None:
+        """One more episode that ended `outcome` (not complete); `taken`: handed to the caller."""
         self.outcomes[outcome] = self.outcomes.get(outcome, 0) + 1
+        if taken:
+            self.taken_outcomes[outcome] = self.taken_outcomes.get(outcome, 0) + 1
+
+    def count_refused(self) -> None:
+        """A command refused before any episode began: a rejected outcome with no episode."""
+        self.count_outcome(es.REJECTED)
+        self.refused_commands += 1
 
     def count_drop(self, reason: str | None, episodes: int = 1) -> None:
         """`episodes` more episodes that could not be read back, for `reason` when known."""
@@ -163,28 +175,32 @@ class BagReadReport:
         return "" if exact else "at least "
 
 
-def incomplete_line(readers, taken: list | None, verb: str) -> str | None:
-    """One line on the recorded episodes of `readers` (finished BagEpisodeReaders) that did
-    not end complete, by outcome, and which of them a command `verb` (`taken`: the episodes
-    it took, each with `meta["outcome"]`; None: it took none of them). A command refused
-    before any episode began is counted but is no episode to take. None when there are none."""
+def incomplete_line(readers, verb: str, *, included: bool) -> str | None:
+    """One line on the recorded episodes of `readers` (BagEpisodeReaders) that did not end
+    complete, by outcome, and which of them a command `verb` (`included`: it asked for
+    them). A command refused before any episode began is counted but is no episode to take;
+    the others left are outside the selection (--splits, a limit). None when there are none."""
     total: dict[str, int] = {}
+    took: dict[str, int] = {}
+    refused = 0
     for reader in readers:
         for outcome, n in reader.report.outcomes.items():
             total[outcome] = total.get(outcome, 0) + n
+        for outcome, n in reader.report.taken_outcomes.items():
+            took[outcome] = took.get(outcome, 0) + n
+        refused += reader.report.refused_commands
     if not total:
         return None
     line = "episodes that did not end complete: " + _by_outcome(total)
-    if taken is None:
+    if not included:
         return f"{line} (not {verb})"
-    took: dict[str, int] = {}
-    for episode in taken:
-        outcome = episode.meta.get("outcome")
-        if outcome is not None:
-            took[outcome] = took.get(outcome, 0) + 1
-    never = sum(total.values()) - sum(took.values())
-    detail = f"{verb}: {_by_outcome(took) or 'none'}"
-    return f"{line} ({detail}" + (f"; {never} refused before any action, nothing to take" if never else "") + ")"
+    left = sum(total.values()) - sum(took.values()) - refused
+    details = [f"{verb}: {_by_outcome(took) or 'none'}"]
+    if refused:
+        details.append(f"{refused} refused before any action, nothing to take")
+    if left:
+        details.append(f"{left} outside the selection")
+    return f"{line} ({'; '.join(details)})"
 
 
 def _by_outcome(counts: dict[str, int]) -> str:

@@ -695,12 +695,16 @@ def test_paper_plan_covers_every_column_with_one_recipe():
 
 # ------------------------------------------------------------------------------ report
 def fake_run(root: Path, name: str, column: str, seed: int, splits: dict, *, k_shot: int = 1, kind="compositional",
-             cut: int = 0, curve=((500, 10.0), (1000, 30.0)), paper: str | None = None) -> None:
+             cut: int = 0, curve=((500, 10.0), (1000, 30.0)), paper: str | None = None,
+             seconds: tuple[float, float] | None = None) -> None:
+    """A finished run's files; `seconds`: its (training, evaluation) wall times."""
     run = root / name
     run.mkdir(parents=True)
     doc = {"run": name, "column": column, "title": column.title(), "paper_column": paper or column, "seed": seed,
            "updates": curve[-1][0], "max_updates": 1000, "best_dev_exact_match": max(v for _, v in curve),
            "max_train_target_length": cut, "data": {"split_kind": kind, "k_shot": k_shot}, "splits": splits}
+    if seconds is not None:
+        doc["train_seconds"], doc["evaluation"] = seconds[0], {"seconds": seconds[1]}
     (run / "results.json").write_text(json.dumps(doc))
     (run / "config.yaml").write_text("batch_size: 50\n")
     (run / "metrics.jsonl").write_text("".join(json.dumps({"event": "validation", "step": s, "dev_exact_match": v})
@@ -715,9 +719,10 @@ def split(letter: str, em: float, by_length: dict | None = None) -> dict:
 @pytest.fixture
 def results(tmp_path):
     root = tmp_path / "results"
-    fake_run(root, "semantic_s0", "semantic", 0, {"test": split("A", 90.0), "adverb_1": split("G", 1.0)})
+    fake_run(root, "semantic_s0", "semantic", 0, {"test": split("A", 90.0), "adverb_1": split("G", 1.0)},
+             seconds=(3600.0, 120.0))
     fake_run(root, "semantic_s1", "semantic", 1, {"test": split("A", 94.0), "adverb_1": split("G", 2.0)},
-             curve=((500, 10.0), (1000, 10.5)))
+             curve=((500, 10.0), (1000, 10.5)), seconds=(5400.0, 120.0))
     fake_run(root, "seq2seq_s0", "seq2seq", 0, {"test": split("A", 97.0), "visual": split("C", 20.0)})
     fake_run(root, "state_s0", "state", 0, {"test": split("A", 50.0)})
     fake_run(root, "attention_state_s0", "attention+state", 0, {"test": split("A", 70.0)})
@@ -734,6 +739,17 @@ def results(tmp_path):
 
 def report(dirs, out: Path, *extra) -> int:
     return main(["report", *map(str, dirs), "--out", str(out), *extra])
+
+
+def test_an_order_claim_averages_the_rows_the_paper_reports_for_both(tmp_path):
+    """The paper has no G k=1 for Dependency: ours and the paper's means leave G out alike."""
+    root = tmp_path / "results"
+    fake_run(root, "semantic_s0", "semantic", 0, {"test": split("A", 90.0), "adverb_1": split("G", 0.0)})
+    fake_run(root, "dependency_s0", "dependency", 0, {"test": split("A", 80.0), "adverb_1": split("G", 30.0)})
+    assert report([root], tmp_path / "tables.md") == 0
+    assert ("- semantic > dependency: holds — mean over A (the rows the paper reports for each): "
+            "Semantic 90.00 vs Dependency 80.00; the order holds row by row on 1 of 1; paper: 96.73 > 96.91.") \
+        in (tmp_path / "tables.md").read_text()  # over A and G, ours would not hold (45 < 55)
 
 
 def test_report_puts_mean_and_std_beside_the_paper(results, tmp_path):
@@ -753,8 +769,9 @@ def test_report_puts_mean_and_std_beside_the_paper(results, tmp_path):
     assert [line for line in histogram.splitlines() if line.startswith("| 1")] == [
         "| 14 | 100.0 (5) |", "| 15 | 75.0 (4) |", "| 16 | 50.0 (2) |", "| 18 | 0.0 (3) |"]
     assert "| 20 | 100.0 (1) |" in histogram
-    assert "| Semantic | 0, 1 | 1000 | 1000 | 50k (30M: 1/600) | 20.25 ± 13.79 | rising +10.25 |" in text
+    assert "| Semantic | 0, 1 | 1000 | 1000 | 50k (30M: 1/600) | 20.25 ± 13.79 | rising +10.25 | 1.0–1.5 | 2.0 |" in text
     assert "| Seq2Seq | 0 | 1000 | 1000 | 50k (40M: 1/800) |" in text  # the paper's seq2seq is Ruis et al.'s
+    assert "| Seq2Seq | 0 | 1000 | 1000 | 50k (40M: 1/800) | 30.00 | rising +20.00 | – | – |" in text  # no times logged
     assert "- Semantic, A: ours 92.00 ± 2.83 vs paper 96.73 ± 0.58 (-4.73); dev curve still rising" in text
     assert "- attention-only > +Attention > State: holds — mean over A" in text
     assert "- semantic > constituency: not checked, no results for Constituency." in text

@@ -91,6 +91,8 @@ class RunResult:
     # split letter -> (episodes, failed episodes per failure kind); the earliest runs have none
     failures: dict[str, tuple[int, dict[str, int]]] = field(default_factory=dict)
     eval_max_examples: int = 0  # a seeded sample of this many episodes per test split (0: all)
+    train_seconds: float | None = None  # wall time of training, screen and validation included
+    eval_seconds: float | None = None  # wall time of the test evaluation
 
 
 # ------------------------------------------------------------------------------ loading
@@ -203,7 +205,8 @@ def _run_result(path: Path, doc: dict, metrics: dict) -> RunResult:
                      max_updates=doc["max_updates"], best_dev=doc.get("best_dev_exact_match"),
                      batch_size=_batch_size(config), config=config, rows=rows, lengths=lengths,
                      failures=failures, **metrics,
-                     eval_max_examples=(doc.get("evaluation") or {}).get("max_examples") or 0)
+                     eval_max_examples=(doc.get("evaluation") or {}).get("max_examples") or 0,
+                     train_seconds=doc.get("train_seconds"), eval_seconds=(doc.get("evaluation") or {}).get("seconds"))
 
 
 def _config(path: Path) -> dict | None:
@@ -489,9 +492,11 @@ def _length_histogram(t: Tables, groups: list[Group]) -> list[str]:
 
 def _budget(t: Tables) -> list[str]:
     out = ["## Runs and budget", "",
+           "Training and evaluation are wall times per run as `results.json` logged them (one thread, "
+           "most runs beside another training on a 2-core machine): a range where the seeds differ.", "",
            "| column | seeds | updates | budget | training examples (the paper's) | best dev exact match "
-           "| dev curve, last 20 % of updates |",
-           "|---|---|---:|---:|---:|---:|---|"]
+           "| dev curve, last 20 % of updates | training, h | evaluation, min |",
+           "|---|---|---:|---:|---:|---:|---|---:|---:|"]
     for g in t.groups:
         runs = t.members[g]
         updates = sorted({r.updates for r in runs})
@@ -502,8 +507,19 @@ def _budget(t: Tables) -> list[str]:
         trend_text = "–" if trend is None else f"{'rising' if trend >= RISING_POINTS else 'flat'} {trend:+.2f}"
         out.append(f"| {g.label} | {', '.join(str(r.seed) for r in runs)} | {updates_text} | "
                    f"{'/'.join(str(b) for b in budgets)} | {_examples_text(g.paper_column or g.column, runs)} | "
-                   f"{Cell(best).text() if best else '–'} | {trend_text} |")
+                   f"{Cell(best).text() if best else '–'} | {trend_text} | "
+                   f"{_time_range((r.train_seconds for r in runs), 3600)} | "
+                   f"{_time_range((r.eval_seconds for r in runs), 60)} |")
     return out + [""]
+
+
+def _time_range(seconds, unit: float) -> str:
+    """The lowest to the highest of some wall times in `unit` seconds: "1.3", "1.3–2.1" or "–"."""
+    values = [v / unit for v in seconds if v is not None]
+    if not values:
+        return "–"
+    low, high = f"{min(values):.1f}", f"{max(values):.1f}"
+    return low if low == high else f"{low}–{high}"
 
 
 def _screens(t: Tables) -> list[str]:
@@ -597,22 +613,25 @@ def _flag(where: str, cell: Cell, figure: tuple[float, float], trend: float | No
 
 
 def _ordered_claim(t: Tables, columns: tuple[str, ...], claim: str) -> str:
-    """Columns strictly decreasing in the mean over the Table 1 rows they all have, and
-    how many of those rows keep the order."""
+    """Columns strictly decreasing in the mean over the Table 1 rows they all have (of
+    those, the rows the paper reports for every one of them, when there are any: both
+    sides then average the same rows), and how many of those rows keep the order."""
     cells = {c: {row: t.cell1(c, row) for row in t.table1_rows()} for c in columns}
     rows = [row for row in t.table1_rows() if all(cells[c][row] is not None for c in columns)]
     missing = [COLUMN_TITLES[c] for c in columns if not any(cells[c].values())]
     if missing or not rows:
         return f"- {claim}: not checked, no results for {', '.join(missing) or 'a common row'}."
+    paper_rows = [row for row in rows if all(row in TABLE1[c] for c in columns)]
+    rows = paper_rows or rows
     ours = [statistics.fmean(cells[c][row].mean for row in rows) for c in columns]
     holds = all(a > b for a, b in zip(ours, ours[1:]))
     row_wise = sum(all(cells[a][row].mean > cells[b][row].mean for a, b in zip(columns, columns[1:])) for row in rows)
-    paper_rows = [row for row in rows if all(row in TABLE1[c] for c in columns)]
     paper = ""
     if paper_rows:
         means = [statistics.fmean(TABLE1[c][row][0] for row in paper_rows) for c in columns]
-        paper = f"; paper over {', '.join(paper_rows)}: {' > '.join(f'{m:.2f}' for m in means)}"
-    return (f"- {claim}: {'holds' if holds else 'does not hold'} — mean over {', '.join(rows)}: "
+        paper = f"; paper: {' > '.join(f'{m:.2f}' for m in means)}"
+    which = " (the rows the paper reports for each)" if paper_rows else ""
+    return (f"- {claim}: {'holds' if holds else 'does not hold'} — mean over {', '.join(rows)}{which}: "
             f"{' vs '.join(f'{COLUMN_TITLES[c]} {m:.2f}' for c, m in zip(columns, ours))}; "
             f"the order holds row by row on {row_wise} of {len(rows)}{paper}.")
 

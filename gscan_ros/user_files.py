@@ -91,7 +91,22 @@ def parse_yaml(text: str, what: str, error: type[GscanError], limit: int = MAX_Y
         raise error(f"{what} holds an unreadable value: {exc}") from None
 
 
-_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+class _Loader(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):
+    """The SafeLoader (libyaml's when installed), refusing a mapping that repeats a key,
+    which PyYAML would settle silently for the last one (`batch_size` set twice)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = set()
+        for key, _ in node.value:
+            if isinstance(key, yaml.ScalarNode) and key.tag != "tag:yaml.org,2002:merge":
+                if key.value in seen:
+                    raise yaml.constructor.ConstructorError(None, None, f"key {key.value!r} appears twice",
+                                                            key.start_mark)
+                seen.add(key.value)
+        return super().construct_mapping(node, deep)
+
+
+_LOADER = _Loader
 
 
 class _Unbounded(Exception):

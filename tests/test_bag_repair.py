@@ -217,7 +217,7 @@ def test_cli_bag_repair(intact, tmp_path, capsys):
     assert "kept:" in out and "lost:" in out and "complete bag" in out
     assert main(["bag", "repair", str(source), "--out", str(tmp_path / "new")]) == 1
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "--overwrite" in err[0] and err[0].startswith("gscan-ros bag: error:")
+    assert len(err) == 1 and "--overwrite" in err[0] and err[0].startswith("gscan-ros bag repair: error:")
     assert main(["bag", "repair", str(source), "--out", str(tmp_path / "new"), "--overwrite"]) == 0
     # Bad arguments: one line, status 1, like every subcommand; nothing written.
     (tmp_path / "notes.txt").write_text("mine")
@@ -226,8 +226,19 @@ def test_cli_bag_repair(intact, tmp_path, capsys):
                        ([str(tmp_path / "notes.txt"), "--out", str(tmp_path / "x")], "not a rosbag2 bag")):
         assert main(["bag", "repair", *argv]) == 1
         err = capsys.readouterr().err.strip().splitlines()
-        assert len(err) == 1 and name in err[0] and err[0].startswith("gscan-ros bag: error:")
+        assert len(err) == 1 and name in err[0] and err[0].startswith("gscan-ros bag repair: error:")
     assert not (tmp_path / "x").exists() and (tmp_path / "notes.txt").read_text() == "mine"
+
+
+@pytest.mark.parametrize("keep", [0, 64], ids=["empty", "header only"])
+def test_repair_of_a_bag_with_nothing_readable_fails_and_writes_nothing(intact, tmp_path, capsys, keep):
+    """An empty repaired bag would read as intact and hide the loss: refused, no bag written."""
+    (tmp_path / "dead").mkdir()
+    (tmp_path / "dead" / "dead_0.mcap").write_bytes(mcap_file(intact).read_bytes()[:keep])
+    assert main(["bag", "repair", str(tmp_path / "dead"), "--out", str(tmp_path / "new")]) == 1
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert "nothing to recover" in line and line.startswith("gscan-ros bag repair: error:")
+    assert not (tmp_path / "new").exists()
 
 
 @pytest.mark.parametrize("summary", [True, False], ids=["closed", "no summary"])

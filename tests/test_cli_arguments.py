@@ -12,7 +12,7 @@ import torch
 from gscan_ros.cli import SUBCOMMANDS, main
 from gscan_ros.errors import CheckpointError
 from gscan_ros.model.checkpoint import read_checkpoint, save_checkpoint
-from gscan_ros.model.policy import Policy
+from gscan_ros.model.policy import Policy, default_checkpoint_path
 from gscan_ros.runtime import available_cpus
 
 from model_support import tiny_checkpoint
@@ -171,6 +171,15 @@ BAD_ARGUMENTS = [
     ("bringup --split dev", "--split"),  # sampled worlds have no split
     ("demo --dataset {data} --grid-size 8", "--grid-size"),
     ("demo --out {file}/run", "--out"),
+    ("demo --parser constituency", "reads semantic parses"),
+    ("train --data {data} --config {yaml_empty}", "holds no settings"),
+    ("evaluate --data {data} --checkpoint {cut}", "is truncated"),
+    ("bringup --record {tmp}", "exists and is not empty (pass --overwrite to replace a bag there)"),
+    ("train --data {data} --config {yaml_twice}", "key 'batch_size' appears twice"),
+    ("explain --metrics --data {data} --overwrite", "--overwrite"),  # the policy would reject every graph
+    ("demo --parser nosuch", "--parser 'nosuch'"),
+    ("demo --checkpoint {file}", "is not a checkpoint"),
+    ("bringup --grid-size 12", "reads 6x6 worlds"),
 ]
 if not torch.cuda.is_available():  # CI: a GPU asked for and not there
     BAD_ARGUMENTS += [(f"{command} --device cuda", "no CUDA GPU") for command in
@@ -188,13 +197,18 @@ def workdir(tmp_path, monkeypatch):
     (tmp_path / "list.yaml").write_text("batch_size: [1, 2]\n")
     (tmp_path / "model_list.yaml").write_text("model: [1, 2]\n")
     (tmp_path / "latin1.yaml").write_bytes("lr: 0.001 # r\xe9glage\n".encode("latin-1"))
+    (tmp_path / "empty.yaml").write_text("# nothing yet\n")
+    (tmp_path / "cut.pt").write_bytes(default_checkpoint_path().read_bytes()[:4096])  # a copy that did not finish
+    (tmp_path / "twice.yaml").write_text("batch_size: 50\nlr: 0.001\nbatch_size: 200\n")
     return tmp_path
 
 
 def _fill(template: str, tmp) -> list[str]:
     values = {"tmp": tmp, "data": tmp / "dataset.txt", "file": tmp / "notes.txt", "missing": tmp / "missing",
               "png": tmp / "old.png", "yaml_list": tmp / "list.yaml", "yaml_model_list": tmp / "model_list.yaml",
-              "yaml_latin1": tmp / "latin1.yaml", "long": tmp / ("n" * 300)}
+              "yaml_latin1": tmp / "latin1.yaml",
+              "yaml_empty": tmp / "empty.yaml", "yaml_twice": tmp / "twice.yaml", "cut": tmp / "cut.pt",
+              "long": tmp / ("n" * 300)}
     return [word.format(**values) for word in template.split()]
 
 
@@ -217,7 +231,8 @@ def assert_refused(capsys, argv: list[str], names: str) -> str:
     assert code == 1, (argv, captured.err)
     assert len(lines) == 1, captured.err
     assert names in lines[0] and "Traceback" not in captured.err
-    assert lines[0].startswith(f"gscan-ros {argv[0]}: error:")
+    command = " ".join(argv[:2]) if argv[0] == "bag" else argv[0]
+    assert lines[0].startswith(f"gscan-ros {command}: error:")
     return lines[0]
 
 
@@ -229,6 +244,23 @@ def test_the_table_covers_every_subcommand():
 def test_bad_argument_is_one_line_exit_1_and_writes_nothing(workdir, capsys, template, names):
     before = _snapshot(workdir)
     assert_refused(capsys, _fill(template, workdir), names)
+    assert _snapshot(workdir) == before
+
+
+EMPTY_PATHS = [
+    ["generate", "--out", ""], ["train", "--data", "dataset.txt", "--out", ""], ["evaluate", "--checkpoint", ""],
+    ["verify", ""], ["replay", ""], ["render", ""], ["report", "", "--out", "r.md"],
+    ["bag", "repair", "", "--out", "r"],
+    ["experiment", "plan.yaml", "--data-root", "", "--dry-run"], ["demo", "--out", ""],
+]
+
+
+@pytest.mark.parametrize("argv", EMPTY_PATHS, ids=[" ".join(a[:2]) for a in EMPTY_PATHS])
+def test_an_empty_path_is_refused_not_read_as_the_current_folder(workdir, capsys, argv):
+    """An unset shell variable (`--out "$OUT"`) must not write into, or read, the current folder."""
+    (workdir / "plan.yaml").write_text("runs: []\n")
+    before = _snapshot(workdir)
+    assert_refused(capsys, argv, "empty path")
     assert _snapshot(workdir) == before
 
 

@@ -139,7 +139,7 @@ def test_malformed_example_names_example_and_field(tmp_path, edit, message):
     path = _corrupt(tmp_path, edit)
     with pytest.raises(DatasetFormatError) as info:
         list(iter_examples(path))
-    assert str(info.value).startswith(message)
+    assert str(info.value).startswith(f"{path}: {message}")  # the file too: a run reads several
     assert "\n" not in str(info.value)
 
 
@@ -148,7 +148,8 @@ def test_truncated_file(tmp_path):
     cut = text.index('"push,a,green,cylinder')  # inside train example 1
     path = tmp_path / "dataset.txt"
     path.write_text(text[:cut + 200])
-    with pytest.raises(DatasetFormatError, match=r"^example 1 of split 'train': invalid JSON at character \d+"):
+    with pytest.raises(DatasetFormatError,
+                       match=r"dataset.txt: example 1 of split 'train': invalid JSON at character \d+"):
         list(iter_examples(path))
 
 

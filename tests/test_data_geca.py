@@ -91,20 +91,44 @@ def test_a_route_across_a_large_grid_is_placed_where_it_fits():
     assert report.added[0].target_commands == train[2].target_commands and report.dropped == {}
 
 
-def test_an_empty_split_of_the_input_is_copied_and_holds_its_kinds_out(tmp_path):
-    """A small dataset leaves some hold-out splits empty: they stay in the output, in the
+def test_an_empty_split_of_the_input_is_copied_and_holds_its_kinds_out(dataset, tmp_path):
+    """A small dataset may leave hold-out splits empty: they stay in the output, in the
     input's order, and still claim their kinds (none of them is added to train)."""
-    generate_dataset(tmp_path / "small", GenerationConfig(seed=0, max_examples=12), workers=1)
+    import json
+
+    from gscan_ros.data.dataset import write_dataset_json
+
+    emptied = ("visual", "dev")
+    lines = {}
+    for split, _, example in iter_raw_examples(dataset):
+        lines.setdefault(split, [])
+        if split not in emptied:
+            lines[split].append(json.dumps(example))
+    header = read_header(dataset)
+    header.extra["gscan_ros"]["split_sizes"] = {split: len(texts) for split, texts in lines.items()}
+    (tmp_path / "small").mkdir()
+    write_dataset_json(tmp_path / "small" / "dataset.txt", header, lines)
     before: dict[str, int] = {}
     list(iter_raw_examples(tmp_path / "small", sizes=before))
     empty = [s for s, n in before.items() if n == 0]
-    assert empty, "the small dataset has an empty split"
+    assert set(empty) == set(emptied)
     path = _augmented(tmp_path / "small", tmp_path / "out", 0)
     after: dict[str, int] = {}
     list(iter_raw_examples(path, sizes=after))
     assert list(after) == list(before) and all(after[s] == 0 for s in empty)
     record = read_header(path).extra["gscan_ros"]["augmentation"]
     assert set(record["held_out"]) == set(before) & HOLD_OUT_SPLITS and set(empty) & HOLD_OUT_SPLITS
+
+
+def test_a_dataset_too_small_for_any_template_is_refused_and_nothing_written(tmp_path, capsys):
+    """A copy without a single added example would pass for an augmented dataset."""
+    generate_dataset(tmp_path / "tiny", GenerationConfig(seed=0, max_examples=2), workers=1)
+    argv = ["augment", "--data", str(tmp_path / "tiny"), "--out", str(tmp_path / "out"), "--method", "geca",
+            "--examples", "5", "--quiet"]
+    assert main(argv) == 1
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert line.startswith("gscan-ros augment: error:") and "no GECA example could be made" in line
+    assert not (tmp_path / "out" / "dataset.txt").exists()
 
 
 @pytest.fixture(scope="module")

@@ -156,7 +156,8 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     (tmp_path / "dataset.txt").write_text('{"examples": {"train": [{"command": "walk,to,a,circle"}]}}')
     assert main(["verify", str(tmp_path), "--quiet"]) == 1
     err = capsys.readouterr().err.strip()
-    assert err == "gscan-ros verify: error: example 0 of split 'train': field 'situation': missing"
+    assert err == (f"gscan-ros verify: error: {tmp_path / 'dataset.txt'}: example 0 of split 'train': "
+                   "field 'situation': missing")
     with pytest.raises(SystemExit) as exit_info:
         main(["generate", "--out", str(tmp_path), "--examples", "0"])
     assert exit_info.value.code == 1

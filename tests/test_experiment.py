@@ -769,7 +769,8 @@ def test_report_puts_mean_and_std_beside_the_paper(results, tmp_path):
     assert [line for line in histogram.splitlines() if line.startswith("| 1")] == [
         "| 14 | 100.0 (5) |", "| 15 | 75.0 (4) |", "| 16 | 50.0 (2) |", "| 18 | 0.0 (3) |"]
     assert "| 20 | 100.0 (1) |" in histogram
-    assert "| Semantic | 0, 1 | 1000 | 1000 | 50k (30M: 1/600) | 20.25 ± 13.79 | rising +10.25 | 1.0–1.5 | 2.0 |" in text
+    assert ("| Semantic | 0, 1 | 1000 | 1000 | 50k (30M: 1/600) | 20.25 ± 13.79 | rising +10.25 | 1.0–1.5 | 2.0 |"
+            in text)
     assert "| Seq2Seq | 0 | 1000 | 1000 | 50k (40M: 1/800) |" in text  # the paper's seq2seq is Ruis et al.'s
     assert "| Seq2Seq | 0 | 1000 | 1000 | 50k (40M: 1/800) | 30.00 | rising +20.00 | – | – |" in text  # no times logged
     assert "- Semantic, A: ours 92.00 ± 2.83 vs paper 96.73 ± 0.58 (-4.73); dev curve still rising" in text

@@ -22,6 +22,7 @@ def test_vocabulary_is_the_18_gscan_tokens():
         ("  Pull A Big Square, while   ZIGZAGGING!", ("pull", "a", "big", "square", "while zigzagging")),
         ("walk,to,a,circle,cautiously", ("walk", "to", "a", "circle", "cautiously")),  # dataset.txt form
         ("push a\tcylinder.\n", ("push", "a", "cylinder")),
+        ("walk\u00a0to a\u2003circle", ("walk", "to", "a", "circle")),  # no-break and em spaces
     ],
 )
 def test_tokenize_is_case_space_and_punctuation_tolerant(text, tokens):
@@ -40,6 +41,8 @@ def test_tokenize_is_case_space_and_punctuation_tolerant(text, tokens):
         ("   \n", "command is empty"),
         ("?!,", "has no words"),
         ("walk\x00to a circle", "non-printable character 0x0000 at position 4"),
+        ("walk to a red C\u0130RCLE", "unknown word 'ci\u0307rcle'; closest known words: 'circle'"),  # not 'ci'
+        ("wal\u0308k to a circle", "unknown word 'wal\u0308k'"),  # a combining mark stays in its word
         ("walk " * (MAX_TOKENS + 1), f"more than {MAX_TOKENS} tokens"),
         ("while spinning " * (MAX_TOKENS + 1), f"more than {MAX_TOKENS} tokens"),
         ("walk " * 10**6, f"more than {MAX_TOKENS} tokens"),

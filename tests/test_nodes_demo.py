@@ -53,3 +53,4 @@ def test_demo_with_an_unparsable_command_fails_with_one_line(tmp_path, monkeypat
     assert code == 1
     (line,) = capsys.readouterr().err.strip().splitlines()
     assert line.startswith("gscan-ros demo: error: unknown word 'fly'")
+    assert not (tmp_path / "demo").exists()  # refused before any output: --out stays free for the next try

@@ -60,25 +60,26 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    name = " ".join(filter(None, (args.command, getattr(args, "bag_command", None))))  # "bag repair"
     try:
         code = int(args.func(args) or 0)
         sys.stdout.flush()  # what is left fails here, not in the interpreter's flush at exit
         return code
     except GscanError as exc:
-        print(f"gscan-ros {args.command}: error: {exc}", file=sys.stderr)
+        print(f"gscan-ros {name}: error: {exc}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
-        print(f"gscan-ros {args.command}: interrupted", file=sys.stderr)
+        print(f"gscan-ros {name}: interrupted", file=sys.stderr)
         return 130
     except BrokenPipeError:
         return 0
     except OSError as exc:
         if exc.filename is not None and exc.strerror:  # an input that cannot be read (no permission, ...)
-            print(f"gscan-ros {args.command}: error: {exc.filename}: {exc.strerror}", file=sys.stderr)
+            print(f"gscan-ros {name}: error: {exc.filename}: {exc.strerror}", file=sys.stderr)
             return 1
         if exc.errno not in _FULL_DISK:  # no file named: a bug, with its traceback
             raise
-        print(f"gscan-ros {args.command}: error: cannot write to standard output: {exc.strerror}", file=sys.stderr)
+        print(f"gscan-ros {name}: error: cannot write to standard output: {exc.strerror}", file=sys.stderr)
         _discard_stdout()
         return 1
 

@@ -104,10 +104,13 @@ def name_list(text: str) -> list[str]:
 
 # -------------------------------------------------------------------------------- paths
 def _probing(check: Callable[[str], Path]) -> Callable[[str], Path]:
-    """A path that cannot even be looked at (a name too long, a folder not readable) is a
-    usage error too: pathlib passes such an OSError on, which argparse would not catch."""
+    """An empty path, or one that cannot even be looked at (a name too long, a folder not
+    readable), is a usage error too: pathlib reads "" as the current folder and passes such
+    an OSError on, which argparse would not catch."""
     @functools.wraps(check)
     def probe(text: str) -> Path:
+        if not text.strip():  # an unset shell variable: not the current folder
+            raise argparse.ArgumentTypeError(f"{text!r} is an empty path")
         try:
             return check(text)
         except OSError as exc:

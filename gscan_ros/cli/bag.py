@@ -32,7 +32,8 @@ def register(subparsers) -> None:
     )
     repair.add_argument("bag", metavar="BAG", help="the damaged bag directory (read only)")
     repair.add_argument("--out", required=True, metavar="NEW",
-                        help="directory for the repaired bag (must not exist, see --overwrite)")
+                        help="directory for the repaired bag: new (its parents are made) or empty; "
+                             "--overwrite replaces a bag there")
     repair.add_argument("--overwrite", action="store_true",
                         help="replace a previous bag at NEW (never anything that is not a bag)")
     repair.set_defaults(func=run_repair)

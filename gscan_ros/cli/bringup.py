@@ -27,7 +27,8 @@ def add_stack_arguments(parser: argparse.ArgumentParser) -> None:
     """Options shared by `bringup` and `demo`."""
     parser.add_argument("--checkpoint", type=existing_file, default=None,
                         help="policy checkpoint (default: the shipped model)")
-    parser.add_argument("--parser", default="", help="parse type (default: the checkpoint's)")
+    parser.add_argument("--parser", default="", help="parse type; the policy takes only its checkpoint's "
+                        "(the default)")
     source = parser.add_argument_group("situations (a dataset split, else random sampling)")
     source.add_argument("--dataset", type=existing_path, default=None, help="dataset.txt, its directory, or a bag")
     source.add_argument("--split", default=None, help="dataset split, with --dataset (default: test)")
@@ -36,7 +37,7 @@ def add_stack_arguments(parser: argparse.ArgumentParser) -> None:
     source.add_argument("--seed", type=nonnegative_int, default=None,
                         help="first sampling seed, without --dataset (default: 0)")
     source.add_argument("--grid-size", type=int_in(SUPPORTED_GRID_SIZES[0], SUPPORTED_GRID_SIZES[-1]),
-                        default=None, help=f"grid side of sampled worlds, without --dataset (default: {GRID_SIZE})")
+                        default=None, help="grid side of sampled worlds, without --dataset (default: the model's)")
     parser.add_argument("--max-steps", type=positive_int, default=None,
                         help="action cap per episode (default: policy_node's, gscan_ros.model.policy.MAX_STEPS)")
 
@@ -55,18 +56,36 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-SOURCE_DEFAULTS = {"split": "test", "index": 0, "seed": 0, "grid_size": GRID_SIZE}
+SOURCE_DEFAULTS = {"split": "test", "index": 0, "seed": 0}
 
 
-def resolve_source_arguments(args: argparse.Namespace) -> None:
-    """Refuse situation options the chosen source does not use (--split and --index name a
-    dataset's examples; --seed and --grid-size sample worlds without one), then fill in the
-    defaults of the others."""
+def resolve_stack_arguments(args: argparse.Namespace) -> dict:
+    """Refuse, before any node starts, what the stack would take and then fail on: situation
+    options the chosen source does not use (--split and --index name a dataset's examples;
+    --seed and --grid-size sample worlds without one), a checkpoint that cannot be read, a
+    --parser whose graphs its policy rejects, a --grid-size its model does not read. Sampled
+    worlds take the model's grid size unless told; the other defaults are filled in. The
+    checkpoint dict is returned (its parser and lexicon parse the demo's commands)."""
+    from gscan_ros.language.registry import BUILTIN_PARSERS
+    from gscan_ros.model.checkpoint import read_checkpoint
+    from gscan_ros.model.policy import default_checkpoint_path
+
     if args.dataset is not None:
         refuse_unused(args, ("seed", "grid_size"), "(--dataset serves its own examples)")
     else:
         refuse_unused(args, ("split", "index"), "(without --dataset, worlds are sampled)")
-    fill_defaults(args, SOURCE_DEFAULTS)
+    if args.parser and args.parser not in BUILTIN_PARSERS:
+        raise GscanError(f"--parser {args.parser!r}: not one of {', '.join(BUILTIN_PARSERS)}")
+    ckpt = read_checkpoint(args.checkpoint or default_checkpoint_path())
+    model = f"the {'shipped' if args.checkpoint is None else 'checkpoint'}'s model"
+    if args.parser and args.parser != ckpt["parser"]:
+        raise GscanError(f"--parser {args.parser}: {model} reads {ckpt['parser']} parses, so the policy would "
+                         f"reject every command (leave --parser out)")
+    grid = int(ckpt["model_config"].get("grid_size", GRID_SIZE))
+    if args.grid_size is not None and args.grid_size != grid:
+        raise GscanError(f"--grid-size {args.grid_size}: {model} reads {grid}x{grid} worlds")
+    fill_defaults(args, {**SOURCE_DEFAULTS, "grid_size": grid})
+    return ckpt
 
 
 def stack_options(args: argparse.Namespace, **overrides) -> StackOptions:
@@ -81,9 +100,13 @@ def run(args: argparse.Namespace) -> int:
     from gscan_ros.nodes.stack import Stack
     from gscan_ros.outputs import claimed
 
-    resolve_source_arguments(args)
     if args.overwrite and args.record is None:
         raise GscanError("--overwrite replaces a bag at --record BAG_DIR; no --record given")
+    resolve_stack_arguments(args)
+    if args.record is not None:
+        from gscan_ros.data.bag_metadata import replaceable_bag
+
+        replaceable_bag(args.record, args.overwrite)  # refused here with this command's flag, before any node
     with claimed(args.record) if args.record else contextlib.nullcontext(), Stack(stack_options(args)) as stack:
         names = ", ".join(n.get_name() for n in stack.nodes)
         print(f"gscan-ros bringup: running {names}; Ctrl-C stops")

@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 from gscan_ros.cli.args import float_in, nonblank, output_dir, positive_int
-from gscan_ros.cli.bringup import add_stack_arguments, resolve_source_arguments, stack_options
+from gscan_ros.cli.bringup import add_stack_arguments, resolve_stack_arguments, stack_options
 from gscan_ros.errors import GscanError
 
 DEFAULT_OUT_ROOT = Path("out/demo")
@@ -43,7 +43,8 @@ def run(args: argparse.Namespace) -> int:
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     from gscan_ros.outputs import claimed, refuse_links
 
-    resolve_source_arguments(args)
+    ckpt = resolve_stack_arguments(args)
+    episodes, graphs = _plan(args, ckpt)  # a bad dataset or --command fails here, before any output
     out = args.out or DEFAULT_OUT_ROOT / time.strftime("%Y%m%d_%H%M%S")
     with claimed(out):
         if out.exists() and any(out.iterdir()) and not args.overwrite:
@@ -52,7 +53,27 @@ def run(args: argparse.Namespace) -> int:
         out.mkdir(parents=True, exist_ok=True)
         for gif in _earlier_gifs(out, args.episodes):  # an earlier demo's, beyond this one's episodes
             gif.unlink()
-        return _run(args, out)
+        return _run(args, out, episodes, graphs)
+
+
+def _plan(args: argparse.Namespace, ckpt: dict) -> tuple[list, list]:
+    """The situations the world node will serve (its own source, same arguments) and the
+    command graph of each, parsed as the parser node will with the checkpoint's parser."""
+    from gscan_ros.data.sources import episode_source
+    from gscan_ros.language.registry import get_parser
+    from gscan_ros.model.checkpoint import checkpoint_lexicon
+
+    source = episode_source(str(args.dataset) if args.dataset else "", args.split, args.index, args.seed,
+                            args.grid_size)
+    episodes = [source.next() for _ in range(args.episodes)]
+    grid = args.grid_size
+    for episode in episodes:
+        if episode.situation.grid_size != grid:
+            raise GscanError(f"{args.dataset}: example {episode.example_id} of split {episode.split!r} is on a "
+                             f"{episode.situation.grid_size}x{episode.situation.grid_size} grid; the model reads "
+                             f"{grid}x{grid}")
+    parser = get_parser(str(ckpt["parser"]), checkpoint_lexicon(ckpt))
+    return episodes, [parser.parse(args.command_text or e.command) for e in episodes]  # CommandError for --command
 
 
 def _earlier_gifs(out: Path, episodes: int) -> list[Path]:
@@ -61,22 +82,14 @@ def _earlier_gifs(out: Path, episodes: int) -> list[Path]:
             if p.is_file() and not p.is_symlink() and p.stem[8:].isdigit() and int(p.stem[8:]) > episodes]
 
 
-def _run(args: argparse.Namespace, out: Path) -> int:
+def _run(args: argparse.Namespace, out: Path, episodes: list, graphs: list) -> int:
     """The demo proper, writing into `out` (claimed)."""
-    from gscan_ros.data.sources import episode_source
     from gscan_ros.nodes.commander import GscanCommander
-    from gscan_ros.nodes.policy_node import PolicyNode
     from gscan_ros.nodes.stack import Stack
 
     options = stack_options(args, record=out / "bag", record_images=True)
-    dataset = str(args.dataset) if args.dataset else ""
-    source = episode_source(dataset, args.split, args.index, args.seed, args.grid_size)  # the world node's sequence
-    episodes = [source.next() for _ in range(args.episodes)]
-
     matched = 0
     with Stack(options) as stack:
-        policy = stack.node(PolicyNode).policy
-        graphs = [policy.parse(args.command_text or e.command) for e in episodes]  # CommandError for --command
         words = list(dict.fromkeys(node.word for g in graphs for node in g.nodes))
         with GscanCommander("demo_operator", attention_words=words) as commander:
             stack.start()

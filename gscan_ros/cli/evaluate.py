@@ -22,8 +22,8 @@ def register(subparsers) -> None:
         help="closed-loop exact match / token accuracy per split",
         description="The model acts, the World executes, the new state is fed back (batched over many "
         "episodes). Writes results.json, results.md and predictions.json (gSCAN prediction format; "
-        "per-word attention maps with --attention). Split letters: "
-        + ", ".join(f"{letter} {split}" for split, letter in SPLIT_LETTERS.items()) + ". For G at k = 5/10/50, "
+        "per-word attention maps with --attention). --splits takes split names; the paper's letters stand for "
+        + ", ".join(f"{letter} = {split}" for split, letter in SPLIT_LETTERS.items()) + ". For G at k = 5/10/50, "
         "train models on data made with `gscan-ros generate --k-shot K` and evaluate each. Under "
         "`torchrun --nproc_per_node N -m gscan_ros.cli evaluate ...` the N processes share the batches and "
         "rank 0 writes the same files one process would (docs/scaling.md).",

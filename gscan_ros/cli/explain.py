@@ -111,8 +111,8 @@ def _check_modes(args: argparse.Namespace) -> None:
     if args.metrics:
         if args.data is None:
             raise GscanError("--metrics needs --data DS (the episodes to measure on)")
-        if args.command_text or args.out or args.gif:
-            raise GscanError("--metrics prints numbers: it takes no COMMAND, --out or --gif")
+        if args.command_text or args.out or args.gif or args.overwrite:
+            raise GscanError("--metrics prints numbers: it takes no COMMAND, --out, --gif or --overwrite")
         refuse_unused(args, ("step", "fps", "split", "index"), "by --metrics (it reads --splits of --data)")
         return
     refuse_unused(args, ("splits", "max_examples", "batch_size"), "without --metrics")

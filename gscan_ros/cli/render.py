@@ -19,7 +19,7 @@ def register(subparsers) -> None:
     )
     p.add_argument("dataset", type=existing_path, metavar="DATASET",
                    help="dataset.txt, a directory holding it, or a bag directory")
-    p.add_argument("--split", default="train", help="split name (default: train)")
+    p.add_argument("--split", default="test", help="split name (default: test, as for demo, bringup and explain)")
     p.add_argument("--index", type=nonnegative_int, default=0, help="example index within the split (default: 0)")
     p.add_argument("--out", required=True, type=output_file(".png", ".gif"), metavar="FILE",
                    help="output .png or .gif, in an existing folder")

@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import argparse
 
-from gscan_ros.cli.args import existing_path, output_file
+from gscan_ros.cli.args import existing_dir, output_file
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("report", help="the paper's tables (mean ± std over seeds) from experiment runs",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("dirs", nargs="+", type=existing_path, metavar="RUN_DIR",
+    p.add_argument("dirs", nargs="+", type=existing_dir, metavar="RUN_DIR",
                    help="run directories or folders holding them")
     p.add_argument("--out", required=True, type=output_file(".md"), metavar="FILE.md", help="the markdown report")
     curves = p.add_mutually_exclusive_group()

@@ -332,12 +332,13 @@ def bag_owned_files(bag_dir: str | os.PathLike) -> list[Path]:
     return [p for p in own if p.exists() or p.is_symlink()]
 
 
-def replaceable_bag(bag_dir: str | os.PathLike, overwrite: bool) -> list[Path]:
+def replaceable_bag(bag_dir: str | os.PathLike, overwrite: bool, *, flag: str = "--overwrite") -> list[Path]:
     """What must go before a new bag is written at `bag_dir`: the one overwrite rule of
     every bag writer (BagWriter, `bag repair`). Nothing there, or an empty folder: [].
     Anything else is refused without `overwrite`; with it, only a folder that holds nothing
     but a bag's own files (`bag_owned_files`) is replaced: a symbolic link, a file, or a
-    folder holding anything else is refused. A refusal is one DatasetFormatError line."""
+    folder holding anything else is refused. A refusal is one DatasetFormatError line;
+    `flag` is how the caller's user allows the replacement."""
     bag_dir = Path(bag_dir)
     if bag_dir.is_symlink() or (bag_dir.exists() and not bag_dir.is_dir()):
         kind = "a symbolic link" if bag_dir.is_symlink() else "not a directory"
@@ -345,8 +346,7 @@ def replaceable_bag(bag_dir: str | os.PathLike, overwrite: bool) -> list[Path]:
     if not bag_dir.exists() or not any(bag_dir.iterdir()):
         return []
     if not overwrite:
-        raise DatasetFormatError(f"{bag_dir}: exists and is not empty (pass --overwrite, or set the recorder's "
-                                 f"overwrite parameter, to replace a bag there)")
+        raise DatasetFormatError(f"{bag_dir}: exists and is not empty (pass {flag} to replace a bag there)")
     own = bag_owned_files(bag_dir)
     foreign = sorted(p.name for p in bag_dir.iterdir() if p not in own)
     if foreign:

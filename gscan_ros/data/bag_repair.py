@@ -85,6 +85,9 @@ def repair_bag(bag_dir: str | os.PathLike, out_dir: str | os.PathLike, *, overwr
     reader = BagEpisodeReader(src, log_losses=False, include_incomplete=True)
     for _ in reader.records():
         pass
+    if not reader.report.messages_read:  # an empty bag would only hide the loss
+        raise DatasetFormatError(f"{src}: nothing to recover, no message could be read ({reader.report.summary()}); "
+                                 f"no bag written")
     out.parent.mkdir(parents=True, exist_ok=True)
     with scratch(out.parent, out.name) as staging:  # a killed repair's is removed by the next writer of `out`
         copier = _RepairCopier(info, reader, BagWriter(staging / out.name))

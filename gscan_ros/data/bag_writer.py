@@ -87,12 +87,14 @@ class BagWriter:
         include_images: bool = False,
         chunk_size: int = DEFAULT_CHUNK_SIZE,
         overwrite: bool = False,
+        overwrite_flag: str = "--overwrite",
     ):
         self.bag_dir = Path(bag_dir)
         self.mcap_path = self.bag_dir / mcap_file_name(self.bag_dir)
         self.include_images = include_images
         self._chunk_size = chunk_size
         self._overwrite = overwrite
+        self._overwrite_flag = overwrite_flag  # how the user allows it, for the refusal's message
         self._file = None
         self._mcap: McapWriter | None = None
         self._schemas: dict[str, int] = {}
@@ -239,7 +241,7 @@ class BagWriter:
     def _prepare_dir(self) -> None:
         """Make way for the bag (`replaceable_bag`: with `overwrite`, only an old bag's own
         files go) and create its directory."""
-        remove_bag_files(replaceable_bag(self.bag_dir, self._overwrite))
+        remove_bag_files(replaceable_bag(self.bag_dir, self._overwrite, flag=self._overwrite_flag))
         self.bag_dir.mkdir(parents=True, exist_ok=True)
 
     def _require_open(self) -> None:

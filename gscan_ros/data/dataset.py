@@ -283,7 +283,8 @@ class _JsonStream:
         return key
 
 
-def _dataset_path(path: str | os.PathLike) -> Path:
+def dataset_file(path: str | os.PathLike) -> Path:
+    """The dataset.txt at `path` (the file, or the folder holding it); DatasetFormatError if none."""
     path = Path(path)
     if path.is_dir():
         path = path / DATASET_FILE
@@ -336,6 +337,10 @@ def _walk(path: Path, header: dict, wanted: frozenset[str] | None, header_only: 
                 raise DatasetFormatError(f"invalid JSON at character {stream.offset}: data after the top-level object")
         except UnicodeDecodeError as exc:
             raise DatasetFormatError(f"{path}: not UTF-8 text ({exc.reason})") from None
+        except DatasetFormatError as exc:  # named by the file, as a run reads several
+            if str(exc).startswith(str(path)):
+                raise
+            raise DatasetFormatError(f"{path}: {exc}") from None
 
 
 def _walk_examples(stream: _JsonStream, wanted: frozenset[str] | None,
@@ -388,7 +393,7 @@ def read_header(path: str | os.PathLike) -> DatasetHeader:
     writer puts vocabulary keys after the examples, which are then skipped over.
     """
     header: dict = {}
-    for _ in _walk(_dataset_path(path), header, wanted=frozenset(), header_only=True):
+    for _ in _walk(dataset_file(path), header, wanted=frozenset(), header_only=True):
         pass
     return DatasetHeader.from_json(header)
 
@@ -401,7 +406,7 @@ def iter_raw_examples(path: str | os.PathLike, splits: Iterable[str] | None = No
 
     wanted = None if splits is None else frozenset(splits)
     sizes = {} if sizes is None else sizes
-    file = _dataset_path(path)
+    file = dataset_file(path)
     yield from _walk(file, {}, wanted, sizes=sizes)
     if wanted is not None:
         require_splits(sorted(wanted), sizes, file)
@@ -410,15 +415,17 @@ def iter_raw_examples(path: str | os.PathLike, splits: Iterable[str] | None = No
 def iter_examples(path: str | os.PathLike, splits: Iterable[str] | None = None) -> Iterator[tuple[str, int, Example]]:
     """(split, index, Example) in file order, one example in memory at a time."""
     for split, index, raw in iter_raw_examples(path, splits):
-        yield split, index, decode_example(split, index, raw)
+        yield split, index, decode_example(split, index, raw, dataset_file(path))
 
 
-def decode_example(split: str, index: int, raw: dict) -> Example:
-    """An example of `iter_raw_examples`; a malformed one is a DatasetFormatError naming it."""
+def decode_example(split: str, index: int, raw: dict, path: str | os.PathLike | None = None) -> Example:
+    """An example of `iter_raw_examples`; a malformed one is a DatasetFormatError naming it
+    (and the file at `path`)."""
     try:
         return Example.from_json(raw)
     except GscanError as exc:
-        raise DatasetFormatError(f"example {index} of split {split!r}: {exc}") from None
+        where = f"{path}: " if path is not None else ""
+        raise DatasetFormatError(f"{where}example {index} of split {split!r}: {exc}") from None
 
 
 # ---------------------------------------------------------------------------------------

@@ -438,6 +438,9 @@ def augment_dataset(data: str | os.PathLike, out_dir: str | os.PathLike, *, exam
             splits = {name: splits[name] for name in [*names, *(s for s in splits if s not in names)]}
             held_out = frozenset(splits) & HOLD_OUT_SPLITS
             report = _generate(corpus, examples, seed, held_out, kept_splits(keep_held_out, held_out))
+            if examples and not report.added:  # a plain copy would pass for an augmented dataset
+                raise GscanError(f"{data}: no GECA example could be made ({report.templates} templates from "
+                                 f"{report.train_pairs} train pairs, {report.templates_tried} tried); nothing written")
             lines = {split: _lines(path, report.added if split == TRAIN else ()) for split, path in splits.items()}
             sizes = {name: counts.get(name, 0) for name in splits}
             write_dataset_json(target, _header(data, report, sizes), lines)

@@ -167,12 +167,14 @@ def iter_episode_loaders(path: str | os.PathLike,
             if not reader.report.complete:
                 log.warning(reader.report.summary())
         return
-    from gscan_ros.data.dataset import decode_example, iter_raw_examples
+    from gscan_ros.data.dataset import dataset_file, decode_example, iter_raw_examples
 
     _require_dataset_txt(path)
 
+    file = dataset_file(path)
+
     def load(split: str, index: int, raw: dict) -> Episode:
-        return decode_example(split, index, raw).to_episode(split, index)
+        return decode_example(split, index, raw, file).to_episode(split, index)
 
     for split, index, raw in iter_raw_examples(path, wanted):
         yield functools.partial(load, split, index, raw)
@@ -228,12 +230,12 @@ def iter_test_episodes(path: str | os.PathLike, splits: list[str] | None = None)
 
         yield from iter_bag_episodes(path, ALL_TEST_SPLITS)
     else:
-        from gscan_ros.data.dataset import decode_example, iter_raw_examples
+        from gscan_ros.data.dataset import dataset_file, decode_example, iter_raw_examples
 
         _require_dataset_txt(path)
         for split, index, raw in iter_raw_examples(path):
             if split in ALL_TEST_SPLITS:
-                yield decode_example(split, index, raw).to_episode(split, index)
+                yield decode_example(split, index, raw, dataset_file(path)).to_episode(split, index)
 
 
 def select_test_episodes(path: str | os.PathLike, splits: list[str] | None, max_examples: int = 0,

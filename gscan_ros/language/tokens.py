@@ -32,10 +32,12 @@ CONTENT_WORDS: tuple[str, ...] = (
 )
 VOCABULARY: tuple[str, ...] = CONTENT_WORDS + FUNCTION_WORDS
 
-# Runs of letters/digits; everything else (spaces, commas, punctuation, '_') separates words.
-# The words are then joined into gSCAN tokens by the world's `split_command` (one rule
-# for "while X"); this module adds the checks and the user-facing errors.
-_WORD = re.compile(r"[^\W_]+")
+# Runs of letters/digits, with the combining marks inside them (so that "CİRCLE", whose
+# lower case is "ci\u0307rcle", is one unknown word, not 'ci'); everything else (spaces,
+# commas, punctuation, '_') separates words. The words are then joined into gSCAN tokens by
+# the world's `split_command` (one rule for "while X"); this module adds the checks and the
+# user-facing errors.
+_WORD = re.compile(r"[^\W_](?:[^\W_]|[\u0300-\u036f\u1ab0-\u1aff\u1dc0-\u1dff\u20d0-\u20ff\ufe20-\ufe2f])*")
 
 
 def _hint_table() -> dict[str, tuple[str, ...]]:
@@ -87,7 +89,7 @@ def _not_utf8(byte: int, position: int) -> str:
 def _printable(text: str) -> str:
     if not text.isprintable():  # fast path in C; find the culprit only when needed
         for i, char in enumerate(text):
-            if not (char.isprintable() or char in " \t\r\n"):
+            if not (char.isprintable() or char.isspace()):  # a no-break space separates words too
                 raise CommandError(f"command contains a non-printable character {ord(char):#06x} at position {i}")
     return text
 

@@ -155,6 +155,10 @@ def _check_archive(path: Path) -> None:
             # zipfile's reader of the end record (zip64 too): the entry count, read before
             # ZipFile lists the entries (~500 bytes of memory each)
             end = zipfile._EndRecData(f)
+            f.seek(0)
+            zip_start = f.read(4) == b"PK\x03\x04"
+        if end is None and zip_start:  # a zip archive cut short: a copy or download that did not finish
+            raise CheckpointError(f"{where} is truncated (a zip archive without its end record)")
         if end is None:
             raise CheckpointError(f"{where} is not a checkpoint (torch.save writes a zip archive)")
         entries = end[zipfile._ECD_ENTRIES_TOTAL]

@@ -85,7 +85,7 @@ class EpisodeRecorderNode(Node):
     # -- parameters --------------------------------------------------------------------
     def _open_bag(self, bag_dir: Path, changes: dict) -> BagWriter:
         overwrite = changes.get("overwrite", self.get_parameter("overwrite").value)
-        return BagWriter(bag_dir, overwrite=overwrite).open()
+        return BagWriter(bag_dir, overwrite=overwrite, overwrite_flag="the overwrite parameter").open()
 
     def _bag_path(self, changes: dict) -> Path:
         bag_dir = changes.get("bag_dir", self.get_parameter("bag_dir").value)

@@ -259,7 +259,9 @@ class TrainConfig:
         """YAML file (None: defaults) + 'key=value' overrides ('model.key=value' for model fields)."""
         data: dict = {}
         if path is not None:
-            data = read_yaml(path, f"config {str(path)!r}", ConfigError) or {}
+            data = read_yaml(path, f"config {str(path)!r}", ConfigError)
+            if data is None:
+                raise ConfigError(f"config {str(path)!r} holds no settings; leave --config out to use the defaults")
             if not isinstance(data, dict):
                 raise ConfigError(f"config {str(path)!r} must be a mapping")
         if not isinstance(data.get("model") or {}, dict):

@@ -58,6 +58,19 @@ def test_each_bad_command_gives_one_short_status_line(probe, parser):
     assert graphs == []
 
 
+def test_a_message_that_is_no_string_is_reported_rejected_on_episode_status(probe, parser):
+    """A command whose bytes hold no std_msgs/String still gets its typed REJECTED report."""
+    from actionlib_msgs.msg import GoalStatus
+
+    from msg_adapters import cdr_to_episode_status
+
+    reports = probe.record("episode_status", GoalStatus, EVENT_QOS, raw=True)
+    parser.on_command(b"\x00\x01\x00\x00\xff\xff\x00\x00walk")  # a length field beyond the data
+    probe.spin_until(lambda: reports, what="a report")
+    report = cdr_to_episode_status(reports[0])
+    assert report.outcome == "rejected" and report.text.startswith("rejected command (an unreadable std_msgs/String)")
+
+
 def test_unknown_parser_or_missing_checkpoint_is_a_start_up_error(probe, checkpoint, tmp_path):
     with pytest.raises(CommandError):
         ParserNode(context=probe.context, parameter_overrides=parameters(checkpoint=str(checkpoint), parser="magic"))

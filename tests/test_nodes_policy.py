@@ -13,6 +13,7 @@ from sensor_msgs.msg import Image
 from std_msgs.msg import String
 
 from gscan_ros import interface, runtime
+from gscan_ros.errors import GscanError
 from gscan_ros.language import get_parser
 from gscan_ros.language.lexicon import Lexicon
 from gscan_ros.model.checkpoint import build_model, checkpoint_dict, save_checkpoint
@@ -195,21 +196,24 @@ def test_an_observation_of_another_grid_size_is_reported_and_not_acted_on(probe)
 
 
 def test_after_a_grid_size_mismatch_each_command_is_rejected_until_the_checkpoint_fits(probe):
-    """A world of another size than the checkpoint's: the running episode and every later
-    command end REJECTED with the reason (no episode waits forever); a checkpoint that fits
-    the world is followed from the next command on."""
+    """A world of another size than the checkpoint's: the running episode is cut (`<eos>`,
+    ABORTED: it had been accepted) and every later command is REJECTED, with the reason (no
+    episode waits forever); a checkpoint that fits the world is followed from the next
+    command on."""
     from actionlib_msgs.msg import GoalStatus
 
     from msg_adapters import cdr_to_episode_status
 
     reports = probe.record("episode_status", GoalStatus, EVENT_QOS, raw=True)
+    actions = probe.record("action", String, EVENT_QOS)
     node, policy = start(probe, [Action.WALK])
     node.on_graph(graph(), source_info())
     node.on_observation(observation_to_cdr(np.zeros((12, 12, 16), dtype=np.uint8)), source_info())
     node.on_graph(graph("walk to a circle"), source_info())
     probe.spin_until(lambda: len(reports) == 3, what="three reports")
     told = [cdr_to_episode_status(r) for r in reports]
-    assert [r.outcome for r in told] == ["active", "rejected", "rejected"]
+    assert [r.outcome for r in told] == ["active", "cut", "rejected"]
+    probe.spin_until(lambda: [a.data for a in actions] == ["<eos>"], what="the forced <eos>")
     assert all("12x12 grid; the checkpoint was trained on 6x6" in r.text for r in told[1:])
     assert told[2].text.startswith("not following 'walk to a circle': observation is a 12x12 grid")  # the graph is fine
     assert policy.seen == [] and policy.resets == ["walk to a red circle while spinning"]
@@ -365,20 +369,25 @@ def test_every_graph_that_comes_while_the_node_is_busy_gets_its_reports(probe):
     assert policy.resets == ["walk to a red circle", "push a big square"]
 
 
-def test_a_graph_from_before_the_start_or_the_last_reset_is_rejected_on_episode_status(probe):
+def test_a_graph_from_before_the_start_is_ignored_and_one_from_before_the_last_reset_rejected(probe):
+    """The latched copy a restarted policy receives starts no episode and takes no id (a
+    recorder would count it as a new rejected command); a command overtaken by a reset is
+    answered REJECTED."""
     from actionlib_msgs.msg import GoalStatus
 
     reports = probe.record("episode_status", GoalStatus, EVENT_QOS, raw=True)
+    status = probe.record("status", String, EVENT_QOS)
     node, policy = start(probe, [Action.WALK])
     node.on_graph(graph(), source_info(t_ns=1))  # the latched copy a restarted policy receives
     before_reset = time.time_ns()
     node.on_world_reset(world_reset(), source_info())
     node.on_graph(graph("push a big square"), source_info(t_ns=before_reset))
-    probe.spin_until(lambda: len(reports) == 2, what="two reports")
+    probe.spin_until(lambda: len(reports) == 1, what="one report")
     assert told(reports) == [
-        ("rejected", "not following 'walk to a red circle while spinning': its graph was published before this "
-                     "node started"),
         ("rejected", "not following 'push a big square': its graph was published before the world was reset")]
+    assert cdr_to_episode_status(reports[0]).episode_id.endswith("/1")  # the ignored graph took no id
+    probe.spin_until(lambda: any("ignored the graph of 'walk to a red circle while spinning': published before "
+                                 "this node started" in s.data for s in status), what="the status line")
     assert policy.resets == []
 
 
@@ -484,6 +493,34 @@ def test_an_episode_whose_reply_never_comes_ends_aborted_after_step_timeout(prob
     assert len(policy.seen) == 2
     node.on_graph(graph(), source_info())  # with a state to start from, the next command is followed
     assert len(policy.seen) == 3
+
+
+def test_step_timeout_takes_an_integer_as_ros2_param_set_sends_it(probe):
+    """`-p step_timeout:=60` and `ros2 param set /policy_node step_timeout 5` send integers."""
+    node, _ = start(probe, [Action.WALK], step_timeout=60)
+    assert node._step_timeout == 60.0
+    [result] = node.set_parameters(parameters(step_timeout=5))
+    assert result.successful and node._step_timeout == 5.0
+    for bad, reason in ((-1, "must lie in [0, 86400]"), (10**9, "must lie in [0, 86400]"), (1e9, "out of range"),
+                        ("soon", "must be a number")):
+        [result] = node.set_parameters(parameters(step_timeout=bad))
+        assert not result.successful and reason in result.reason, bad
+    assert node._step_timeout == 5.0
+    with pytest.raises(GscanError, match="step_timeout must lie in"):
+        start(probe, [Action.WALK], step_timeout=-3)
+
+
+def test_the_watchdog_runs_with_use_sim_time_and_no_clock(probe):
+    """A launch file may set use_sim_time for every node; with no /clock the node clock
+    stands still, and a watchdog on it would leave the episode ACTIVE for ever."""
+    from actionlib_msgs.msg import GoalStatus
+
+    reports = probe.record("episode_status", GoalStatus, EVENT_QOS, raw=True)
+    node, policy = start(probe, [Action.WALK], step_timeout=0.05, use_sim_time=True)
+    node.on_graph(graph(), source_info())
+    node.on_observation(observation(0), source_info())  # walk; its reply never comes
+    probe.spin_until(lambda: len(reports) == 2, what="the watchdog's end of the episode")  # the timer, not a call
+    assert told(reports)[1][0] == "cut" and "step_timeout=0.05 s after action 0" in told(reports)[1][1]
 
 
 def test_torch_threads_0_gives_the_model_torchs_default_again(probe, monkeypatch):

@@ -22,6 +22,7 @@ from typing import TypeVar
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
+from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import ParameterException
 from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
@@ -33,6 +34,7 @@ from gscan_ros import interface
 from gscan_ros.errors import GscanError
 from gscan_ros.interface import Endpoint, Qos, attention_topic, topic_token  # noqa: F401 - re-exported
 from msg_adapters import text_to_cdr
+from msg_adapters.header import time_msg
 
 COMMAND = interface.COMMAND.name
 COMMAND_GRAPH = interface.COMMAND_GRAPH.name
@@ -94,14 +96,29 @@ HARDWARE_ID = "gscan_ros"  # a DiagnosticStatus's hardware_id: these nodes drive
 def describe(text: str, *, read_only: bool = False, int_range: tuple[int, int] | None = None,
              float_range: tuple[float, float] | None = None, constraints: str = "") -> ParameterDescriptor:
     """Parameter descriptor with a description and, for numbers, the allowed range
-    (`ros2 param describe` shows them; rclpy refuses a value outside the range)."""
+    (`ros2 param describe` shows them; rclpy refuses a value outside the range). A float
+    parameter takes integers too (`-p step_timeout:=60` and `ros2 param set ... 60` send
+    one): it is dynamically typed, and `number_in` checks the value."""
     descriptor = ParameterDescriptor(description=text, read_only=read_only, additional_constraints=constraints)
     if int_range is not None:
         descriptor.integer_range = [IntegerRange(from_value=int_range[0], to_value=int_range[1], step=1)]
     if float_range is not None:
         descriptor.floating_point_range = [FloatingPointRange(from_value=float(float_range[0]),
                                                               to_value=float(float_range[1]), step=0.0)]
+        descriptor.dynamic_typing = True
     return descriptor
+
+
+def number_in(name: str, value: object, descriptor: ParameterDescriptor) -> float:
+    """The value of a float parameter (`describe(float_range=...)`) as a float: an integer
+    or a double within its range, else a GscanError naming it (rclpy checks the range of
+    doubles only, and the type of none, as the parameter is dynamically typed)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise GscanError(f"parameter {name} must be a number, got {value!r}")
+    (bounds,) = descriptor.floating_point_range
+    if not bounds.from_value <= value <= bounds.to_value:
+        raise GscanError(f"parameter {name} must lie in [{bounds.from_value:g}, {bounds.to_value:g}], got {value!r}")
+    return float(value)
 
 
 def validated(check: Callable[[dict[str, object]], None]) -> Callable[[list], SetParametersResult]:
@@ -149,6 +166,12 @@ def quote(value: object) -> str:
     return text if len(text) <= ECHO_CHARS else f"{text[:ECHO_CHARS]}... ({len(str(value))} chars)"
 
 
+def steady_timer(node: Node, period_s: float, callback: Callable[[], None]):
+    """A timer on the steady clock: the node clock stops with `use_sim_time` and no /clock,
+    which would stop a watchdog or the diagnostics with it."""
+    return node.create_timer(period_s, callback, clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+
 class StatusReporter:
     """A node's health: one human-readable line per event on `status`, and its
     DiagnosticStatus on `/diagnostics` (docs/ros.md "Health").
@@ -175,7 +198,10 @@ class StatusReporter:
         self._level, self._message = DiagnosticStatus.OK, "started"
         self._rejected = self._errors = 0
         self._traced: set[tuple[str, str]] = set()  # (where, exception type) whose traceback was logged
-        node.create_timer(DIAGNOSTICS_PERIOD_S, self.publish_diagnostics)
+        steady_timer(node, DIAGNOSTICS_PERIOD_S, self.publish_diagnostics)
+        if node.get_parameter("use_sim_time").value:
+            node.get_logger().warning("use_sim_time is ignored: the stack stamps and times with the system clock, "
+                                      "the clock of the DDS source timestamps lock-step compares (docs/ros.md)")
 
     @property
     def level(self) -> bytes:
@@ -216,7 +242,7 @@ class StatusReporter:
             level=self._level, name=self._node.get_fully_qualified_name(), message=self._message,
             hardware_id=HARDWARE_ID, values=[KeyValue(key=key, value=str(value)) for key, value in values.items()],
         )
-        header = Header(stamp=self._node.get_clock().now().to_msg())
+        header = Header(stamp=time_msg(time.time_ns()))  # system time, as every stamp of the stack
         self._diagnostics_pub.publish(DiagnosticArray(header=header, status=[status]))
 
     def _publish(self, text: str, level: bytes) -> str:

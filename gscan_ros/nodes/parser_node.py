@@ -35,6 +35,7 @@ from gscan_ros.model.policy import default_checkpoint_path
 from gscan_ros.nodes.common import (
     COMMAND,
     COMMAND_GRAPH,
+    COMMAND_REFUSAL,
     EPISODE_STATUS,
     StatusReporter,
     command_refusal,
@@ -103,7 +104,11 @@ class ParserNode(Node):
     @guarded
     def on_command(self, cdr: bytes) -> None:
         """`cdr`: the serialized std_msgs/String (see the module docstring)."""
-        data = cdr_to_string_bytes(cdr)
+        try:
+            data = cdr_to_string_bytes(cdr)
+        except GscanError as exc:  # no command to quote, but a command all the same: reported like one
+            self._reject(f"{COMMAND_REFUSAL} (an unreadable std_msgs/String): {exc}")
+            return
         limit = self.get_parameter("max_command_chars").value
         try:
             text = command_text(data)
@@ -112,17 +117,20 @@ class ParserNode(Node):
             canonical = canonicalize(text)
             graph = self._parser.parse(text)
         except GscanError as exc:
-            line = f"{command_refusal(_shown(data))}: {exc}"
-            self.status.reject(line)
-            self._rejected += 1
-            self._episode_pub.publish(episode_status_to_cdr(EpisodeStatus(
-                f"{self.get_fully_qualified_name()}/{self._rejected}", time.time_ns(), REJECTED, line)))
+            self._reject(f"{command_refusal(_shown(data))}: {exc}")
             return
         self._graph_pub.publish(graph_to_cdr(graph))
         if canonical.mappings:  # logged too
             self.status.info(f"{canonical.explain()} ({len(graph.nodes)} nodes)")
         else:
             self.get_logger().info(f"parsed {quote(text)} into {len(graph.nodes)} nodes")
+
+    def _reject(self, line: str) -> None:
+        """A command not parsed: on `status` for people, REJECTED on `episode_status` for programs."""
+        self.status.reject(line)
+        self._rejected += 1
+        self._episode_pub.publish(episode_status_to_cdr(EpisodeStatus(
+            f"{self.get_fully_qualified_name()}/{self._rejected}", time.time_ns(), REJECTED, line)))
 
 
 def _shown(data: bytes) -> str:

@@ -9,9 +9,10 @@ Episode protocol (docs/ros.md "Lock-step"):
   after a failed step, or when no observation came within `step_timeout`; PREEMPTED: a
   new command or a world reset; REJECTED: a graph it cannot follow), after its last
   action, so the actions published between the two are exactly the episode's
-  (docs/ros.md "Episodes"). A graph published before this node started (the latched copy
-  a restarted policy receives) or before the world's last reset is REJECTED: a command
-  is an instruction for the moment it is given;
+  (docs/ros.md "Episodes"). A command is an instruction for the moment it is given: a
+  graph published before the world's last reset is REJECTED, and one published before
+  this node started (the latched copy a restarted policy receives, an answered command
+  or one sent while no policy ran) is ignored with a line on `status`, no episode;
 - the policy acts on the newest observation, publishes action t, and then acts only
   on an observation *published after* action t. "After" compares the observation's
   DDS source timestamp with the time action t was sent, so a reply that was already
@@ -54,9 +55,11 @@ from gscan_ros.nodes.common import (
     attention_topic,
     describe,
     guarded,
+    number_in,
     qos_profile,
     report_failure,
     run,
+    steady_timer,
     validated,
 )
 from gscan_ros.runtime import configure_torch, resolve_device
@@ -89,12 +92,12 @@ class PolicyNode(Node):
             "max_steps", MAX_STEPS, describe("actions per episode before <eos> is forced (read at each episode start)",
                                        int_range=(1, 100_000))
         )
-        self.declare_parameter(
-            "step_timeout", STEP_TIMEOUT_S, describe(
-                "seconds an episode waits for an observation published after its last action (or, at its start, "
-                "for a first one) before <eos> is forced and it ends ABORTED; 0: wait forever (a change applies "
-                "at once)", float_range=(0.0, 86_400.0))
-        )
+        self._step_timeout_descriptor = describe(
+            "seconds an episode waits for an observation published after its last action (or, at its start, "
+            "for a first one) before <eos> is forced and it ends ABORTED; 0: wait forever (a change applies "
+            "at once)", float_range=(0.0, 86_400.0))
+        self.declare_parameter("step_timeout", STEP_TIMEOUT_S, self._step_timeout_descriptor)
+        self._step_timeout = self._seconds(self.get_parameter("step_timeout").value)  # 60 as well as 60.0
         self.declare_parameter(
             "attention_upsample", 10, describe("pixels per grid cell in attention/<word> images", int_range=(1, 100))
         )
@@ -140,7 +143,7 @@ class PolicyNode(Node):
         self.create_subscription(String, COMMAND_GRAPH, self.on_graph,
                                  qos_profile(interface.COMMAND_GRAPH, depth=interface.LOG_DEPTH), raw=True)
         self.create_subscription(Image, OBSERVATION, self.on_observation, newest(interface.OBSERVATION), raw=True)
-        self.create_timer(WATCHDOG_PERIOD_S, self.check_step)
+        steady_timer(self, WATCHDOG_PERIOD_S, self.check_step)
         self.add_on_set_parameters_callback(validated(self._check_parameters))
         self.add_post_set_parameters_callback(self._apply_parameters)
         self.get_logger().info(f"policy ready (parser {self._policy.parser_name})")
@@ -160,6 +163,8 @@ class PolicyNode(Node):
     def _check_parameters(self, changes: dict) -> None:
         """A new checkpoint or device is loaded here, so a bad one is refused with the reason."""
         self._candidate = None
+        if "step_timeout" in changes:
+            self._seconds(changes["step_timeout"])
         if any(name in changes for name in MODEL_PARAMETERS):
             self._candidate = self._load_policy(changes)
 
@@ -167,12 +172,17 @@ class PolicyNode(Node):
     def _apply_parameters(self, parameters: list) -> None:
         """torch_threads now; a new model at the next command (the running episode keeps its own)."""
         names = {p.name for p in parameters}
+        if "step_timeout" in names:
+            self._step_timeout = self._seconds(self.get_parameter("step_timeout").value)
         if self._candidate is not None:
             self._next_policy, self._candidate = self._candidate, None
         if "torch_threads" in names:
             configure_torch(self.get_parameter("torch_threads").value)
         if names & set(MODEL_PARAMETERS) and self._graph is None:
             self._take_next_policy()
+
+    def _seconds(self, value: object) -> float:
+        return number_in("step_timeout", value, self._step_timeout_descriptor)
 
     def _take_next_policy(self) -> None:
         if self._next_policy is not None:
@@ -203,9 +213,11 @@ class PolicyNode(Node):
         except GscanError as exc:
             self._refuse(f"bad command graph: {exc}")
             return
-        if published_ns < self._started_ns or published_ns < self._reset_ns:
-            before = "this node started" if published_ns < self._started_ns else "the world was reset"
-            self._refuse(f"not following {graph.command!r}: its graph was published before {before}")
+        if published_ns < self._started_ns:  # the latched copy of a command given before: no episode
+            self.status.info(f"ignored the graph of {graph.command!r}: published before this node started")
+            return
+        if published_ns < self._reset_ns:
+            self._refuse(f"not following {graph.command!r}: its graph was published before the world was reset")
             return
         if self._graph is not None:
             self._end(es.PREEMPTED, f"a new command came after {self._steps} actions")
@@ -248,8 +260,8 @@ class PolicyNode(Node):
             self._check_grid(self._observation)
         except GscanError as exc:
             self.status.reject(str(exc))
-            if self._graph is not None:
-                self._end(es.REJECTED, str(exc))
+            if self._graph is not None:  # accepted, then unable to go on: cut like every forced end
+                self._force_eos(str(exc))
             return
         if self._graph is not None and self._observation_ns > self._sent_ns:
             self._act()
@@ -258,7 +270,7 @@ class PolicyNode(Node):
     def check_step(self) -> None:
         """The watchdog: an episode that waited `step_timeout` for an observation it can act on
         (a lost reply, a world that is down) is ended instead of staying ACTIVE forever."""
-        timeout = self.get_parameter("step_timeout").value
+        timeout = self._step_timeout
         if self._graph is None or not timeout or time.monotonic() - self._waiting_since < timeout:
             return
         after = f"action {self._steps - 1}" if self._steps else "the episode started"

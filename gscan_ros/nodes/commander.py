@@ -295,7 +295,8 @@ class GscanCommander(Node):
         if end is not None and episode is not None:  # its last actions and graph may still be on their way
             ended_at = time.monotonic()
             grace = min(deadline, ended_at + LATE_GRACE_S)
-            while time.monotonic() < grace and not self._settled(command, sent_ns, episode[0], end, ended_at):
+            while time.monotonic() < grace and not self._settled(command, sent_ns, episode[0], end, ended_at,
+                                                                 status_from):
                 self._executor.spin_once(timeout_sec=POLL_S)
         start_ns = episode[0] if episode is not None else sent_ns
         end_ns = end[0] if end is not None else time.time_ns()
@@ -316,11 +317,15 @@ class GscanCommander(Node):
         )
 
     def _settled(self, command: str, sent_ns: int, start_ns: int, end: tuple[int, es.EpisodeStatus],
-                 ended_at: float) -> bool:
-        """Everything about the ended episode has arrived: the command's graph and its last
-        action: the `<eos>` when it ended with one (the policy's actions arrive in order), else
-        whatever came before the action topic fell quiet for QUIET_S after the end report."""
+                 ended_at: float, status_from: int) -> bool:
+        """Everything about the ended episode has arrived: the command's graph, the policy's
+        `status` line of the end (published just after the report, on another topic), and its
+        last action: the `<eos>` when it ended with one (the policy's actions arrive in order),
+        else whatever came before the action topic fell quiet for QUIET_S after the end report."""
         if self._graph_of(command, sent_ns) is None:
+            return False
+        told = f"episode {end[1].episode_id} {end[1].outcome}:"
+        if not any(told in line for line in self.status_log[status_from:]):
             return False
         if end[1].outcome not in (es.COMPLETE, es.CUT):
             return time.monotonic() - max(ended_at, self._last_action_at) >= QUIET_S

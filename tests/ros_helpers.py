@@ -87,14 +87,18 @@ class Probe:
         a stack in this process, for a GscanCommander that spins itself in the test's thread."""
         import threading
 
+        self._stop = threading.Event()
         self._thread = threading.Thread(target=self._spin, name="probe-spin", daemon=True)
         self._thread.start()
 
     def _spin(self) -> None:
+        """Spin until `close()` asks: the thread ends before the executor is shut down, as
+        rclpy's shutdown from another thread can pull a guard condition from under a wait."""
         from rclpy.executors import ExternalShutdownException
 
         try:
-            self.executor.spin()
+            while not self._stop.is_set():
+                self.executor.spin_once(timeout_sec=0.05)
         except ExternalShutdownException:
             pass
 
@@ -107,9 +111,10 @@ class Probe:
         """Destroy every node spun here (the tests' nodes too) and the context: no participant
         lingers to serve its latched samples to the next test in the same domain."""
         nodes = [*self.executor.get_nodes(), self.node]
-        self.executor.shutdown()
         if getattr(self, "_thread", None) is not None:
+            self._stop.set()
             self._thread.join(timeout=10)
+        self.executor.shutdown()
         for node in dict.fromkeys(nodes):
             node.destroy_node()
         rclpy.try_shutdown(context=self.context)

@@ -144,6 +144,16 @@ class ScriptedPolicy:
         self.script, self.resets, self.seen, self._t = list(script), [], [], 0
         self.on_step = on_step  # called with the step number before each step (e.g. to reset the world)
 
+    def require_observation(self, shape, what):
+        from gscan_ros.model.policy import Policy
+
+        Policy.require_observation(self, shape, what)  # the real rule, on this stand-in's grid
+
+    def require_grid(self, grid_size, what):
+        from gscan_ros.model.policy import require_grid
+
+        require_grid(grid_size, self.grid_size, what)
+
     def reset(self, graph):
         from gscan_ros.errors import GraphError
 

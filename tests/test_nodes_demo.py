@@ -54,3 +54,17 @@ def test_demo_with_an_unparsable_command_fails_with_one_line(tmp_path, monkeypat
     (line,) = capsys.readouterr().err.strip().splitlines()
     assert line.startswith("gscan-ros demo: error: unknown word 'fly'")
     assert not (tmp_path / "demo").exists()  # refused before any output: --out stays free for the next try
+
+
+def test_demo_of_a_dataset_on_another_grid_fails_before_any_output(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(fresh_domain_id()))
+    data = tmp_path / "grid8"
+    assert main(["generate", "--out", str(data), "--examples", "30", "--grid-size", "8", "--seed", "0",
+                 "--workers", "1", "--quiet"]) == 0
+    capsys.readouterr()
+    code = main(["demo", "--checkpoint", str(tiny_checkpoint(tmp_path / "tiny.pt")), "--dataset", str(data),
+                 "--out", str(tmp_path / "demo")])
+    assert code == 1
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert re.search(r"example \S+ of split 'test' is on a 8x8 grid; the model was trained on 6x6$", line), line
+    assert not (tmp_path / "demo").exists()

@@ -191,7 +191,7 @@ def test_an_observation_of_another_grid_size_is_reported_and_not_acted_on(probe)
     node.on_graph(graph(), source_info())
     node.on_observation(observation_to_cdr(np.zeros((12, 12, 16), dtype=np.uint8)), source_info())
     assert policy.seen == []
-    probe.spin_until(lambda: any("12x12 grid; the checkpoint was trained on 6x6" in s.data for s in status),
+    probe.spin_until(lambda: any("12x12 grid; the model was trained on 6x6" in s.data for s in status),
                      what="a rejection")
 
 
@@ -214,8 +214,9 @@ def test_after_a_grid_size_mismatch_each_command_is_rejected_until_the_checkpoin
     told = [cdr_to_episode_status(r) for r in reports]
     assert [r.outcome for r in told] == ["active", "cut", "rejected"]
     probe.spin_until(lambda: [a.data for a in actions] == ["<eos>"], what="the forced <eos>")
-    assert all("12x12 grid; the checkpoint was trained on 6x6" in r.text for r in told[1:])
-    assert told[2].text.startswith("not following 'walk to a circle': observation is a 12x12 grid")  # the graph is fine
+    assert all("12x12 grid; the model was trained on 6x6" in r.text for r in told[1:])
+    # the graph is fine; the world is not
+    assert told[2].text.startswith("not following 'walk to a circle': the observation is on a 12x12 grid")
     assert policy.seen == [] and policy.resets == ["walk to a red circle while spinning"]
     fitting = ScriptedPolicy([Action.WALK])
     fitting.grid_size, fitting.observation_shape = 12, (12, 12, 16)

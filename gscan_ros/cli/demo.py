@@ -62,16 +62,14 @@ def _plan(args: argparse.Namespace, ckpt: dict) -> tuple[list, list]:
     from gscan_ros.data.sources import episode_source
     from gscan_ros.language.registry import get_parser
     from gscan_ros.model.checkpoint import checkpoint_lexicon
+    from gscan_ros.model.policy import require_grid
 
     source = episode_source(str(args.dataset) if args.dataset else "", args.split, args.index, args.seed,
                             args.grid_size)
     episodes = [source.next() for _ in range(args.episodes)]
-    grid = args.grid_size
     for episode in episodes:
-        if episode.situation.grid_size != grid:
-            raise GscanError(f"{args.dataset}: example {episode.example_id} of split {episode.split!r} is on a "
-                             f"{episode.situation.grid_size}x{episode.situation.grid_size} grid; the model reads "
-                             f"{grid}x{grid}")
+        require_grid(episode.situation.grid_size, args.grid_size,
+                     f"{args.dataset}: example {episode.example_id} of split {episode.split!r}")
     parser = get_parser(str(ckpt["parser"]), checkpoint_lexicon(ckpt))
     return episodes, [parser.parse(args.command_text or e.command) for e in episodes]  # CommandError for --command
 

@@ -40,6 +40,14 @@ class StepOutput:
     antonyms: dict[str, np.ndarray] = field(default_factory=dict)
 
 
+def require_grid(grid_size: int, model_grid: int, what: str) -> None:
+    """Refuse `what` (an episode, a situation, an observation) on a grid other than the
+    model's: a model reads one grid size."""
+    if grid_size != model_grid:
+        raise GscanError(f"{what} is on a {grid_size}x{grid_size} grid; the model was trained on "
+                         f"{model_grid}x{model_grid}")
+
+
 class Policy:
     """Model + parser name + lexicon; stateful single-episode stepping for the ROS node."""
 
@@ -98,11 +106,13 @@ class Policy:
         return self.model.cfg.grid_size
 
     def require_grid(self, grid_size: int, what: str) -> None:
-        """Refuse `what` (an episode, a situation) on a `grid_size` grid other than the
-        model's: a model reads one grid size."""
-        if grid_size != self.grid_size:
-            raise GscanError(f"{what} is on a {grid_size}x{grid_size} grid; the model was trained on "
-                             f"{self.grid_size}x{self.grid_size}")
+        require_grid(grid_size, self.grid_size, what)
+
+    def require_observation(self, shape: tuple[int, ...], what: str) -> None:
+        """Refuse an observation array the model cannot read, naming its grid size first."""
+        self.require_grid(shape[0], what)
+        if tuple(shape) != self.observation_shape:
+            raise GscanError(f"{what} has shape {tuple(shape)}; the model reads {self.observation_shape}")
 
     def require_episodes_grid(self, episodes) -> None:
         """`require_grid` for every episode, named by example and split."""

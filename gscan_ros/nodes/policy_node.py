@@ -280,9 +280,8 @@ class PolicyNode(Node):
 
     def _check_grid(self, observation: np.ndarray | None) -> None:
         """The policy's checkpoint must fit the world's grid (a world of another size is reported, not followed)."""
-        if observation is not None and observation.shape != self._policy.observation_shape:
-            g, want = observation.shape[0], self._policy.grid_size
-            raise GscanError(f"observation is a {g}x{g} grid; the checkpoint was trained on {want}x{want}")
+        if observation is not None:
+            self._policy.require_observation(observation.shape, "the observation")
 
     def _new_episode(self, outcome: str, text: str) -> es.EpisodeStatus:
         self._episodes += 1

@@ -93,7 +93,8 @@ def main() -> None:
                                      "configs/length.yaml for split I data)")
     ap.add_argument("--device", default="cpu", choices=DEVICES, help="where the network runs")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="config override, as `gscan-ros train --set` (e.g. model.message=state, parser=dependency)")
+                    help="config override, as `gscan-ros train --set` "
+                         "(e.g. parser=dependency, model.message=attention+state)")
     ap.add_argument("--checkpoint", help="time updates of this trained model (a run's last.pt also restores "
                                          "Adam's moments) instead of a fresh one; its model and parse win over "
                                          "--config's")

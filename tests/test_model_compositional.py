@@ -247,3 +247,20 @@ def test_a_flat_head_escapes_the_minmax_overlap_but_not_the_cosine_one():
     assert antonym_overlap(one_hot, one_hot, cosine).item() == pytest.approx(1.0)
     with pytest.raises(ValueError, match="overlap must be one of"):
         ModelConfig(overlap="sum")
+
+
+@pytest.mark.parametrize("lexicon", ["wordnet", "none"])
+def test_a_state_message_tells_big_from_small_only_with_a_module_each(lexicon):
+    """A shared big|small module tells its words apart by their attention heads alone, and
+    a state message reads no head: under WordNet sharing "big" and "small" act the same,
+    which is why training refuses message 'state' with a shared lexicon."""
+    from gscan_ros.language.lexicon import Lexicon
+
+    parse = get_parser("semantic", Lexicon.named(lexicon)).parse
+    graphs = [parse("push a big square"), parse("push a small square")]
+    torch.manual_seed(0)
+    net = CompositionalNetwork(ModelConfig(message="state"), ModuleTable.from_graphs(graphs)).eval()
+    states = random_states(np.random.default_rng(0), 1)
+    with torch.no_grad():
+        logits = [net.rollout([g]).step(states)[0] for g in graphs]
+    assert torch.equal(logits[0], logits[1]) == (lexicon == "wordnet")

@@ -61,3 +61,16 @@ def test_default_config_is_the_shipped_models():
     default = TrainConfig.load(repo / "configs/default.yaml", []).to_dict()
     assert {k: v for k, v in default.items() if k in recorded and k != "threads"} == {
         k: v for k, v in recorded.items() if k in default and k != "threads"}
+
+
+def test_a_state_message_needs_a_module_per_word():
+    with pytest.raises(ConfigError, match=r"big\|small under lexicon wordnet\) would be one word; set lexicon: none"):
+        TrainConfig.load(None, ["model.message=state"])
+    assert TrainConfig.load(None, ["model.message=state", "lexicon=none"]).model_config().message == "state"
+
+
+@pytest.mark.parametrize("kind", ["compositional", "seq2seq", "lcgn", "auxloss"])
+def test_num_actions_is_the_action_set(kind):
+    """An output per Action id: another count would fail in the loss or at decoding."""
+    with pytest.raises(ConfigError, match=r"num_actions must be 7 \(the actions and <eos>\), got 5"):
+        TrainConfig.load(None, [f"model_kind={kind}", "model.num_actions=5", "lexicon=none"])

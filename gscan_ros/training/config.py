@@ -191,6 +191,11 @@ class TrainConfig:
                                   f"{self.model_kind} / {self.model.get('message', 'attention')}")
             if not 0 < self.screen_updates < self.max_updates:
                 raise ConfigError(f"screen_updates must be in (0, max_updates), got {quoted(self.screen_updates)}")
+        if getattr(model_config, "message", None) == "state" and self.lexicon != "none":
+            # One module serves big and small, its words told apart by their attention heads
+            # alone; a state message reads no head, so "big" and "small" would act the same.
+            raise ConfigError(f"message 'state' passes no attention map, so the words a shared module serves "
+                              f"(big|small under lexicon {self.lexicon}) would be one word; set lexicon: none")
 
     def batch_size_at(self, step: int) -> int:
         """Episodes in update `step` (0-based)."""
@@ -210,15 +215,7 @@ class TrainConfig:
 
     def model_config(self):
         """The config of the `model_kind` these settings describe (ConfigError on bad keys)."""
-        _, cls = model_classes(self.model_kind)
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(self.model) - known)
-        if unknown:
-            raise ConfigError(f"unknown model setting(s) {quoted(unknown)}; known: {sorted(known)}")
-        try:
-            return cls(**self.model)
-        except (TypeError, ValueError) as exc:
-            raise ConfigError(f"bad model setting: {exc}") from None
+        return model_config(self.model_kind, self.model)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -314,6 +311,19 @@ def _screen_kept(events: list[dict], screen_seeds: int) -> bool:
     return bool(passed) and passed[0] < max(screen_seeds, 1)
 
 
+def model_config(model_kind: str, model: dict):
+    """The model config of `model_kind` from its settings `model` (ConfigError on bad keys)."""
+    _, cls = model_classes(model_kind)
+    known = {f.name for f in fields(cls)}
+    unknown = sorted(set(model) - known)
+    if unknown:
+        raise ConfigError(f"unknown model setting(s) {quoted(unknown)}; known: {sorted(known)}")
+    try:
+        return cls(**model)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"bad model setting: {exc}") from None
+
+
 def _saved_model_settings(config: dict) -> dict | None:
     """Every model setting of a saved config (None if they no longer load). A compositional
     network saved before `init_fan_in` existed was initialised as 'table' does, which
@@ -321,7 +331,7 @@ def _saved_model_settings(config: dict) -> dict | None:
     model = dict(config.get("model") or {})
     kind = config.get("model_kind", "compositional")
     try:
-        settings = TrainConfig(model_kind=kind, model=model).model_config().to_dict()
+        settings = model_config(kind, model).to_dict()
         if "init_fan_in" in settings and "init_fan_in" not in model \
                 and _widest_module(config.get("parser", DEFAULT_PARSER)) > 1:
             settings["init_fan_in"] = "table"

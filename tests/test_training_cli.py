@@ -114,6 +114,21 @@ def test_resume_refuses_another_recipe_and_leaves_config_yaml(dataset, tmp_path,
     assert run_train(dataset, run, "--set", "max_updates=2", "--set", "max_minutes=60", "--resume") == 0
 
 
+def test_resume_from_a_weights_only_checkpoint_is_refused_in_one_line(dataset, tmp_path, capsys):
+    """model.pt (like best.pt and step_N.pt) holds no optimizer, batch position or RNGs: put in
+    last.pt's place it is named, not a KeyError."""
+    run = tmp_path / "run"
+    assert run_train(dataset, run, "--set", "max_updates=2", "--set", "max_dev_examples=8") == 0
+    (run / "last.pt").write_bytes((run / "model.pt").read_bytes())
+    (run / "last.prev.pt").unlink(missing_ok=True)
+    lines = (run / "metrics.jsonl").read_text().splitlines()
+    (run / "metrics.jsonl").write_text("\n".join(line for line in lines if '"end"' not in line) + "\n")
+    capsys.readouterr()
+    assert run_train(dataset, run, "--set", "max_updates=4", "--resume") == 1
+    (err,) = capsys.readouterr().err.strip().splitlines()
+    assert "last.pt holds weights only (no optimizer, cursor, rng, best_dev_exact_match)" in err
+
+
 def test_a_damaged_last_checkpoint_resumes_from_the_one_before(dataset, tmp_path, caplog):
     """Each save of last.pt keeps the one before as last.prev.pt; a last.pt cut short (a crash
     the rename did not cover) resumes from it, with a warning, and trains on as straight."""

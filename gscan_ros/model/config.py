@@ -74,6 +74,8 @@ def check_settings(cfg, sizes: tuple[str, ...], rates: tuple[str, ...], depths: 
         value = getattr(cfg, name)
         if not (isinstance(value, (int, float)) and 0 <= value < 1):
             raise ValueError(f"{name} must be a number in [0, 1), got {quoted(value)}")
+    if "num_actions" in sizes and cfg.num_actions != len(Action):  # an output per Action id, <eos> included
+        raise ValueError(f"num_actions must be {len(Action)} (the actions and <eos>), got {quoted(cfg.num_actions)}")
 
 
 @dataclass(frozen=True)
@@ -121,7 +123,8 @@ class ModelConfig(SerializableConfig):
     as passed, which is 0 only for maps on disjoint cells, so a flat head pays for it
     (1/√cells against a one-hot map)."""
     num_actions: int = len(Action)
-    """Output classes: the six gSCAN actions plus EOS, ids = `Action` values."""
+    """Output classes: the six gSCAN actions plus EOS, ids = `Action` values (always 7; kept in
+    checkpoints)."""
     init_fan_in: str = "module"
     """The fan-in that scales the uniform initialisation of a module's attention output layer
     (`att_out_*`) and child-state layer (`state_*`): 'module', its own argument slots, as a

@@ -175,9 +175,9 @@ def evaluate_episodes(model_or_policy, episodes: Sequence[Episode], batch_size: 
     every world_size-th batch, exactly the batches one process would decode, and rank 0
     gets all predictions back in order, bit for bit the single-process result; the other
     ranks get None."""
-    policy = model_or_policy if isinstance(model_or_policy, Policy) else Policy(model_or_policy, parser)
+    was_training = (model_or_policy.model if isinstance(model_or_policy, Policy) else model_or_policy).training
+    policy = model_or_policy if isinstance(model_or_policy, Policy) else Policy(model_or_policy, parser)  # eval()s it
     policy.require_episodes_grid(episodes)
-    was_training = policy.model.training
     policy.model.eval()
     mine = shard_of(range(0, len(episodes), batch_size), ranks)
     decoded: dict[int, list[Prediction]] = {}

@@ -50,6 +50,8 @@ from gscan_ros.training.step import TrainingDiverged, TrainStep
 # Seed screening: candidate k of a run with seed s has seed s + SCREEN_SEED_STRIDE k
 # (training/config.py), and its maps are read on this many dev episodes.
 SCREEN_EPISODES = 300
+# What `resume` reads beyond the weights: model.pt, best.pt and step_N.pt hold none of it.
+RESUME_STATE = ("optimizer", "cursor", "rng", "best_dev_exact_match")
 # What a screened candidate is: the Run attributes that `fresh_start` and training change.
 SCREEN_STATE = ("seed", "model", "optimizer", "scheduler", "step", "cursor", "train_step", "policy")
 
@@ -432,7 +434,7 @@ class Run:
         next one's number, so a stopped screen resumes at that candidate (candidates are
         independent: each starts from its own seed) instead of from the first."""
         cfg = self.cfg
-        episodes = self.dev_eps[:SCREEN_EPISODES]
+        episodes = screen_episodes(self.dev_eps, cfg.seed)
         kept: dict | None = None
         first = 0
         if self.screen_resume:  # the state resume() loaded is the best candidate so far
@@ -555,25 +557,30 @@ class Run:
 
 
 class _LossWindow:
-    """Loss and examples of the updates since the last `train` record."""
+    """Loss and examples of the updates since the last `train` record; the logged loss is
+    the mean over their examples (a short batch, the last of an epoch or of one command,
+    weighs what its examples weigh)."""
 
-    def __init__(self, loss: float = 0.0, examples: int = 0, updates: int = 0):
-        self.loss, self.examples, self.updates, self.since = loss, examples, updates, time.time()
+    def __init__(self, loss_sum: float = 0.0, examples: int = 0, updates: int = 0, loss: float | None = None):
+        if loss is not None:  # a resume point written before the loss was weighed by examples: a sum of batch means
+            loss_sum = loss * examples / max(updates, 1)
+        self.loss_sum, self.examples, self.updates, self.since = loss_sum, examples, updates, time.time()
         self.timed = 0  # examples trained on since `since` (a resumed window's earlier ones are not)
         self.paused = 0.0  # seconds of validation and checkpoints within the window
 
     def state(self) -> dict:
         """What a resume needs to go on with the window (its clock starts afresh)."""
-        return {"loss": self.loss, "examples": self.examples, "updates": self.updates}
+        return {"loss_sum": self.loss_sum, "examples": self.examples, "updates": self.updates}
 
     def add(self, loss: float, examples: int) -> None:
-        self.loss += loss
+        """`loss`: the update's mean over its `examples`."""
+        self.loss_sum += loss * examples
         self.examples += examples
         self.timed += examples
         self.updates += 1
 
     def mean_loss(self) -> float:
-        return self.loss / self.updates
+        return self.loss_sum / self.examples
 
     def rate(self, now: float) -> float:
         """Examples per second of training (validation and checkpoints left out)."""
@@ -609,6 +616,10 @@ def _read_resume_checkpoint(files: RunFiles, cfg: TrainConfig, data: str, train_
             raise
         log.warning("%s; resuming from %s, the checkpoint before it", exc, files.previous)
         path, ckpt = files.previous, read_checkpoint(files.previous)
+    missing = [key for key in RESUME_STATE if key not in ckpt]
+    if missing:
+        raise CheckpointError(f"--resume: {path} holds weights only (no {', '.join(missing)}), as model.pt, "
+                              f"best.pt and step_N.pt do; a run resumes from the last.pt its training wrote")
     changed = config_changes(ckpt.get("train_config", cfg.to_dict()), cfg, events)
     if changed:
         raise ConfigError(f"--resume: {path} was trained with other settings of {', '.join(changed)}; resume with "
@@ -616,6 +627,16 @@ def _read_resume_checkpoint(files: RunFiles, cfg: TrainConfig, data: str, train_
     if int(ckpt["step"]) > cfg.max_updates:
         raise ConfigError(f"--resume: {path} is at update {ckpt['step']}, past max_updates {cfg.max_updates}")
     return ckpt
+
+
+def screen_episodes(dev: list, seed: int) -> list:
+    """The SCREEN_EPISODES dev episodes a seed screen reads, drawn with the run's seed (every
+    candidate reads the same ones). Dev is stored grouped by command, so its first
+    episodes are no sample of it: they can miss a verb or an adverb altogether."""
+    if len(dev) <= SCREEN_EPISODES:
+        return list(dev)
+    chosen = np.random.default_rng(seed).choice(len(dev), SCREEN_EPISODES, replace=False)
+    return [dev[i] for i in sorted(chosen)]
 
 
 def _checkpoint_step(path: Path) -> int | None:

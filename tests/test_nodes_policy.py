@@ -499,14 +499,14 @@ def test_an_episode_whose_reply_never_comes_ends_aborted_after_step_timeout(prob
 def test_step_timeout_takes_an_integer_as_ros2_param_set_sends_it(probe):
     """`-p step_timeout:=60` and `ros2 param set /policy_node step_timeout 5` send integers."""
     node, _ = start(probe, [Action.WALK], step_timeout=60)
-    assert node._step_timeout == 60.0
+    assert node.step_timeout == 60.0
     [result] = node.set_parameters(parameters(step_timeout=5))
-    assert result.successful and node._step_timeout == 5.0
+    assert result.successful and node.step_timeout == 5.0
     for bad, reason in ((-1, "must lie in [0, 86400]"), (10**9, "must lie in [0, 86400]"), (1e9, "out of range"),
                         ("soon", "must be a number")):
         [result] = node.set_parameters(parameters(step_timeout=bad))
         assert not result.successful and reason in result.reason, bad
-    assert node._step_timeout == 5.0
+    assert node.step_timeout == 5.0
     with pytest.raises(GscanError, match="step_timeout must lie in"):
         start(probe, [Action.WALK], step_timeout=-3)
 

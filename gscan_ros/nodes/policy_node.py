@@ -97,7 +97,7 @@ class PolicyNode(Node):
             "for a first one) before <eos> is forced and it ends ABORTED; 0: wait forever (a change applies "
             "at once)", float_range=(0.0, 86_400.0))
         self.declare_parameter("step_timeout", STEP_TIMEOUT_S, self._step_timeout_descriptor)
-        self._step_timeout = self._seconds(self.get_parameter("step_timeout").value)  # 60 as well as 60.0
+        self._seconds(self.get_parameter("step_timeout").value)  # a bad override fails the start
         self.declare_parameter(
             "attention_upsample", 10, describe("pixels per grid cell in attention/<word> images", int_range=(1, 100))
         )
@@ -153,6 +153,11 @@ class PolicyNode(Node):
         """The loaded Policy (its parser and lexicon are the ones graphs must come from)."""
         return self._policy
 
+    @property
+    def step_timeout(self) -> float:
+        """`step_timeout` in seconds (the parameter may hold an integer: `-p step_timeout:=60`)."""
+        return self._seconds(self.get_parameter("step_timeout").value)
+
     def _load_policy(self, changes: dict):
         from gscan_ros.model.policy import Policy
 
@@ -172,8 +177,6 @@ class PolicyNode(Node):
     def _apply_parameters(self, parameters: list) -> None:
         """torch_threads now; a new model at the next command (the running episode keeps its own)."""
         names = {p.name for p in parameters}
-        if "step_timeout" in names:
-            self._step_timeout = self._seconds(self.get_parameter("step_timeout").value)
         if self._candidate is not None:
             self._next_policy, self._candidate = self._candidate, None
         if "torch_threads" in names:
@@ -270,7 +273,7 @@ class PolicyNode(Node):
     def check_step(self) -> None:
         """The watchdog: an episode that waited `step_timeout` for an observation it can act on
         (a lost reply, a world that is down) is ended instead of staying ACTIVE forever."""
-        timeout = self._step_timeout
+        timeout = self.step_timeout
         if self._graph is None or not timeout or time.monotonic() - self._waiting_since < timeout:
             return
         after = f"action {self._steps - 1}" if self._steps else "the episode started"

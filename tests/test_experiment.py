@@ -806,6 +806,9 @@ def test_a_variant_column_is_measured_against_its_paper_columns_budget(tmp_path)
     out = tmp_path / "tables.md"
     assert report([tmp_path / "r"], out) == 0
     assert "| Seq2Seq_160K | 0 | 1000 | 1000 | 50k (40M: 1/800) |" in out.read_text()  # Ruis et al.'s 40M, not 30M
+    fake_run(tmp_path / "a", "auxloss_s0", "auxloss", 0, {"test": split("A", 80.0)})
+    assert report([tmp_path / "a"], out, "--overwrite") == 0
+    assert "| 50k (not stated) |" in out.read_text()  # AuxLoss's own budget: the paper does not give it
 
 
 def test_report_counts_each_columns_screened_starts_on_target(tmp_path):
@@ -838,7 +841,8 @@ def test_report_pools_each_columns_failure_kinds(tmp_path):
     assert report([tmp_path / "r"], out, "--no-curves") == 0
     section = out.read_text().split("## Where the failures go")[1].split("##")[0]
     assert [line for line in section.splitlines() if line.startswith("| ") and "---" not in line][1:] == [
-        "| Semantic | A | 40 | 2.5 | 7.5 | 0.0 | 7.5 |", "| Semantic | H | 10 | 0.0 | 0.0 | 80.0 | 0.0 |"]
+        "| Semantic | A | s0, s1 of 2 | 40 | 2.5 | 7.5 | 0.0 | 7.5 |",
+        "| Semantic | H | s0 of 2 | 10 | 0.0 | 0.0 | 80.0 | 0.0 |"]  # the seeds pooled are named
     fake_free = tmp_path / "none"
     fake_run(fake_free, "state_s0", "state", 0, {"test": split("A", 50.0)})
     assert report([fake_free], tmp_path / "none.md", "--no-curves") == 0

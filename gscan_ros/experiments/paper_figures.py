@@ -36,8 +36,9 @@ COLUMN_TITLES = {
 # Seq2seq figures are those of Ruis et al. (2020), whose baseline trained 200,000
 # iterations of 200 (github.com/LauraRuis/multimodal_seq2seq_gSCAN, its training defaults).
 # GECA's figures are Ruis et al.'s too (the same baseline on the augmented set). AuxLoss and
-# LCGN trained on their own budgets (docs/model.md).
-PAPER_EXAMPLES = {"seq2seq": 200_000 * 200, "geca": 200_000 * 200}
+# LCGN trained on their own budgets, which the paper does not give (None: not stated).
+PAPER_EXAMPLES: dict[str, int | None] = {"seq2seq": 200_000 * 200, "geca": 200_000 * 200,
+                                         "auxloss": None, "lcgn": None}
 PAPER_EXAMPLES_DEFAULT = 150_000 * 200
 
 TABLE1_ROWS = ("A", "B", "C", "D", "E", "F", "G k=1", "G k=5", "G k=10", "G k=50", "H")

@@ -546,29 +546,31 @@ def _screens(t: Tables) -> list[str]:
 
 
 def _failures(t: Tables) -> list[str]:
-    """Per column and split, the share of episodes failed in each failure kind (the
-    columns' seeds pooled), for the runs whose results.json counts them."""
+    """Per column and split, the share of episodes failed in each failure kind, pooled over
+    the column's seeds whose results.json counts them (named: the others are not in it)."""
     rows = []
     for g in t.groups:
         pooled: dict[str, list] = {}
         for run in t.members[g]:
             for letter, (episodes, kinds) in run.failures.items():
-                cell = pooled.setdefault(letter, [0, dict.fromkeys(FAILURE_KINDS, 0)])
+                cell = pooled.setdefault(letter, [0, dict.fromkeys(FAILURE_KINDS, 0), []])
                 cell[0] += episodes
                 for kind in FAILURE_KINDS:
                     cell[1][kind] += kinds.get(kind, 0)
+                cell[2].append(run.seed)
         for letter in sorted(pooled):
-            episodes, kinds = pooled[letter]
+            episodes, kinds, seeds = pooled[letter]
             shares = " | ".join(f"{100 * kinds[k] / episodes:.1f}" if episodes else "–" for k in FAILURE_KINDS)
-            rows.append(f"| {g.label} | {letter} | {episodes} | {shares} |")
+            which = f"{', '.join(f's{s}' for s in sorted(seeds))} of {len(t.members[g])}"
+            rows.append(f"| {g.label} | {letter} | {which} | {episodes} | {shares} |")
     if not rows:
         return []
     return ["## Where the failures go", "",
             "% of each split's episodes failed in each way (`gscan-ros evaluate` replays the gold and the "
-            "predicted actions: docs/model.md, \"Metrics\"), a column's seeds pooled; runs evaluated before "
-            "2026-12-01 did not count them.", "",
-            "| column | split | episodes | " + " | ".join(map(failure_label, FAILURE_KINDS)) + " |",
-            "|---|---|---:|" + "---:|" * len(FAILURE_KINDS), *rows, ""]
+            "predicted actions: docs/model.md, \"Metrics\"), pooled over the seeds named; runs evaluated before "
+            "2026-12-01 did not count them, so a column's profile may leave some of its seeds out.", "",
+            "| column | split | seeds | episodes | " + " | ".join(map(failure_label, FAILURE_KINDS)) + " |",
+            "|---|---|---|---:|" + "---:|" * len(FAILURE_KINDS), *rows, ""]
 
 
 def _examples_text(column: str, runs: list[RunResult]) -> str:
@@ -576,11 +578,12 @@ def _examples_text(column: str, runs: list[RunResult]) -> str:
     e.g. '2.0M (30M: 1/15)'."""
     paper = PAPER_EXAMPLES.get(column, PAPER_EXAMPLES_DEFAULT)
     seen = [r.updates * r.batch_size for r in runs if r.batch_size]
+    theirs = "not stated" if paper is None else f"{paper / 1e6:.0f}M"
     if not seen:
-        return f"– ({paper / 1e6:.0f}M)"
+        return f"– ({theirs})"
     mean = statistics.fmean(seen)
     ours = f"{mean / 1e6:.1f}M" if mean >= 1e6 else f"{mean / 1e3:.0f}k"
-    return f"{ours} ({paper / 1e6:.0f}M: 1/{paper / mean:.0f})"
+    return f"{ours} ({theirs})" if paper is None else f"{ours} ({theirs}: 1/{paper / mean:.0f})"
 
 
 def _notes(t: Tables) -> list[str]:

@@ -108,6 +108,26 @@ def test_changed_recipe_marks_runs_stale_and_leaves_them(trained, tmp_path, caps
     assert (root / "results/state_s0/results.json").stat().st_mtime_ns == before
 
 
+def test_report_with_its_plan_marks_the_cells_of_runs_the_plan_retrains(trained, tmp_path, capsys):
+    """The tables show a stale run's numbers until its retrain lands: with --plan its cells
+    are marked and the note says why, as `experiment --dry-run` does."""
+    root, plan = trained
+    changed = write_plan(tmp_path / "plan.yaml", root, runs=[
+        {"name": "semantic", "config": str(REPO / "configs/semantic.yaml"), "data": "tiny", "seeds": [0],
+         "splits": SPLITS},
+        {"name": "state", "config": str(REPO / "configs/semantic.yaml"), "data": "tiny", "seeds": [0],
+         "splits": SPLITS, "set": {"model.message": "state", "model.rnn_dim": 40}, "max_eval_examples": 3}])
+    out = tmp_path / "t.md"
+    assert report([root / "results"], out, "--no-curves", "--plan", str(changed)) == 0
+    text = out.read_text()
+    assert "- `state_s0` (State): config changed: model.rnn_dim." in text
+    (row_a,) = [line for line in text.split("## Table 1")[1].splitlines() if line.startswith("| A |")]
+    assert row_a.endswith("| 0.00<br>paper 96.73 ± 0.58 |")  # Semantic: as planned, unmarked
+    assert row_a.split(" | ")[1].endswith(" †")  # State
+    assert report([root / "results"], tmp_path / "same.md", "--no-curves", "--plan", str(plan)) == 0
+    assert "†" not in (tmp_path / "same.md").read_text()
+
+
 @pytest.mark.slow
 def test_a_run_whose_checkpoints_were_lost_starts_over_keeping_the_earlier_attempt(trained, capsys):
     root, plan = trained
@@ -915,7 +935,8 @@ def test_committed_tables_regenerate_exactly(tmp_path, monkeypatch):
         pytest.skip("no committed paper results yet")
     monkeypatch.chdir(REPO)
     out = tmp_path / "paper_tables.md"
-    assert report([Path("results/paper")], out, "--curves", str(tmp_path / "paper_tables_curves.png")) == 0
+    assert report([Path("results/paper")], out, "--curves", str(tmp_path / "paper_tables_curves.png"),
+                  "--plan", "configs/experiments/paper.yaml") == 0
     assert out.read_text() == committed.read_text()
 
 

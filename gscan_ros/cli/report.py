@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import argparse
 
-from gscan_ros.cli.args import existing_dir, output_file
+from gscan_ros.cli.args import existing_dir, existing_file, output_file
 
 
 def register(subparsers) -> None:
@@ -23,6 +23,9 @@ def register(subparsers) -> None:
     curves.add_argument("--curves", type=output_file(".png"), metavar="FILE.png",
                         help="learning-curve figure (default: FILE_curves.png next to --out)")
     curves.add_argument("--no-curves", action="store_true", help="no figure")
+    p.add_argument("--plan", type=existing_file, metavar="PLAN.yaml",
+                   help="the experiment plan the runs come from: the runs it retrains (another config or "
+                        "dataset, no weights) are listed and their cells marked")
     p.add_argument("--overwrite", action="store_true", help="replace --out / --curves if they exist")
     p.set_defaults(func=run)
 
@@ -39,6 +42,6 @@ def run(args: argparse.Namespace) -> int:
             if path is not None:
                 held.enter_context(claimed(path))
                 check_targets([path], overwrite=args.overwrite, flag=flag)
-        runs = write_report(args.dirs, args.out, curves)
+        runs = write_report(args.dirs, args.out, curves, args.plan)
     print(f"wrote {args.out} from {len(runs)} run(s)" + (f" and {curves}" if curves else ""))
     return 0

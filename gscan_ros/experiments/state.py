@@ -153,11 +153,7 @@ def _files_state(run_dir: Path, spec: RunSpec, cfg, data_root: Path) -> RunState
     state = RunState(spec, "new", trained_updates(events), cfg.max_updates,
                      seconds_per_update=seconds_per_update(events, cfg.batch_size))
     results = _results(run_dir)
-    changed = config_changes(run_dir, cfg, events)
-    reasons = [f"config changed: {', '.join(changed)}"] if changed else []
-    data = data_change(spec.data.directory(data_root), events, results)
-    if data is not None:
-        reasons.append(data)
+    reasons = plan_changes(run_dir, spec, cfg, data_root, events, results)
     end = finished_end(events, cfg)
     model = RunFiles(run_dir).model
     if reasons:
@@ -180,6 +176,21 @@ def _files_state(run_dir: Path, spec: RunSpec, cfg, data_root: Path) -> RunState
     elif state.updates:
         state.detail = f"no last.pt: starts over, these logged updates kept in {REPLACED}/"
     return state
+
+
+def plan_changes(run_dir: Path, spec: RunSpec, cfg, data_root: Path, events: list[dict] | None = None,
+                 results: dict | None = None) -> list[str]:
+    """What the run trained with that the plan no longer asks for: its config, its data
+    (empty: neither changed). `events`/`results`: its metrics.jsonl records and results.json,
+    when the caller has read them."""
+    if events is None:
+        events = read_events(run_dir / "metrics.jsonl")
+    if results is None:
+        results = _results(run_dir)
+    changed = config_changes(run_dir, cfg, events)
+    reasons = [f"config changed: {', '.join(changed)}"] if changed else []
+    data = data_change(spec.data.directory(data_root), events, results)
+    return reasons + ([data] if data is not None else [])
 
 
 def archive_attempt(run_dir: Path, into: Path | None = None) -> Path | None:

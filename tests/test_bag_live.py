@@ -456,3 +456,60 @@ def test_a_bad_observation_costs_its_episode_whether_states_are_decoded_or_not(t
     assert result.episodes == 2
     repaired = BagEpisodeReader(tmp_path / "repaired", decode_states=True)
     assert [r.episode for r in repaired.records()] == expected and repaired.report.complete
+
+
+def test_without_command_graphs_an_episode_takes_the_command_its_report_names(tmp_path):
+    """An all-topics bag of /command but no /command_graph: the newest typed command may be
+    the one that preempted the episode, so the ACTIVE report's command labels it."""
+    rng = random.Random(5)
+    stack = LiveStack(make_episodes(1, seed=3)[0].situation)
+    stack.state()
+    first_command, second_command = "walk to a red circle", "walk to a blue circle"
+    stack.command(first_command)
+    stack.command(second_command)
+    start, first = stack.world.snapshot(), stack.route(rng, 2)
+    preempted = stack.start(first_command)
+    for action in first:
+        stack.act(action)
+    stack.end(preempted, es.PREEMPTED)
+    middle, second = stack.world.snapshot(), stack.route(rng, 2)
+    following = stack.start(second_command)
+    for action in [*second, Action.EOS]:
+        stack.act(action)
+    stack.end(following, es.COMPLETE)
+    bag = _record(stack, tmp_path / "no_graphs", recorder=False)
+    records = list(BagEpisodeReader(bag, include_incomplete=True).records())
+    assert [(r.episode, r.outcome) for r in records] == [
+        (_live(first_command, start, first), es.PREEMPTED),
+        (_live(second_command, middle, second), es.COMPLETE)]
+    assert all("typed_command" not in r.episode.meta for r in records)
+
+
+@pytest.mark.parametrize("topic", ["action", "episode_status", "situation", "observation"])
+def test_a_message_the_bag_holds_twice_is_read_once(tmp_path, topic):
+    """A bag merged with itself, or a sample logged twice: same topic, publish time and
+    bytes is one DDS sample, so a demonstration gains no action and a report counts once."""
+    rng = random.Random(6)
+    stack = LiveStack(make_episodes(1, seed=3)[0].situation)
+    stack.state()
+    for command in ("walk to a red circle", "walk to a blue circle"):
+        stack.command(command, PARSER.parse(command))
+        stack.episode(stack.route(rng, 3))
+    clean = list(BagEpisodeReader(_record(stack, tmp_path / "clean", recorder=False)).records())
+    copied = next(i for i, m in enumerate(stack.messages) if m[0] == f"/{topic}")
+    stack.messages.insert(copied + 1, stack.messages[copied])
+    reader = BagEpisodeReader(_record(stack, tmp_path / "twice", recorder=False))
+    assert [r.episode for r in reader.records()] == [r.episode for r in clean] and len(clean) == 2
+    assert reader.report.duplicate_messages == 1 and reader.report.lost_episodes == 0
+    assert "1 duplicate message(s) left out" in reader.report.summary()
+
+
+def test_a_bag_without_an_episode_topic_names_it(tmp_path):
+    stack = LiveStack(make_episodes(1, seed=3)[0].situation)
+    stack.state()
+    stack.command("walk to a red circle", PARSER.parse("walk to a red circle"))
+    stack.episode(stack.route(random.Random(7), 2))
+    stack.messages = [m for m in stack.messages if m[0] != "/situation"]
+    reader = BagEpisodeReader(_record(stack, tmp_path / "no_situation", recorder=False))
+    assert list(reader.records()) == []
+    assert "no gSCAN stack: it lacks /situation (std_msgs/msg/String)" in reader.report.summary()

@@ -180,6 +180,8 @@ BAD_ARGUMENTS = [
     ("demo --parser nosuch", "--parser 'nosuch'"),
     ("demo --checkpoint {file}", "is not a checkpoint"),
     ("bringup --grid-size 12", "reads 6x6 worlds"),
+    ("verify {mcap}", "a storage file of a bag; pass the bag's folder"),
+    ("train --data {mcap}", "a storage file of a bag; pass the bag's folder"),
 ]
 if not torch.cuda.is_available():  # CI: a GPU asked for and not there
     BAD_ARGUMENTS += [(f"{command} --device cuda", "no CUDA GPU") for command in
@@ -200,6 +202,7 @@ def workdir(tmp_path, monkeypatch):
     (tmp_path / "empty.yaml").write_text("# nothing yet\n")
     (tmp_path / "cut.pt").write_bytes(default_checkpoint_path().read_bytes()[:4096])  # a copy that did not finish
     (tmp_path / "twice.yaml").write_text("batch_size: 50\nlr: 0.001\nbatch_size: 200\n")
+    (tmp_path / "bag_0.mcap").write_bytes(b"\x89MCAP0\r\n")  # one file of a bag, not its folder
     return tmp_path
 
 
@@ -208,6 +211,7 @@ def _fill(template: str, tmp) -> list[str]:
               "png": tmp / "old.png", "yaml_list": tmp / "list.yaml", "yaml_model_list": tmp / "model_list.yaml",
               "yaml_latin1": tmp / "latin1.yaml",
               "yaml_empty": tmp / "empty.yaml", "yaml_twice": tmp / "twice.yaml", "cut": tmp / "cut.pt",
+              "mcap": tmp / "bag_0.mcap",
               "long": tmp / ("n" * 300)}
     return [word.format(**values) for word in template.split()]
 

@@ -133,6 +133,19 @@ def existing_path(text: str) -> Path:
     return path
 
 
+def dataset_path(text: str) -> Path:
+    """An existing dataset: a dataset.txt, its folder, or a bag's folder (not one of its files)."""
+    from gscan_ros.data.io import refuse_bag_file
+    from gscan_ros.errors import GscanError
+
+    path = existing_path(text)
+    try:
+        refuse_bag_file(path)
+    except GscanError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return path
+
+
 @_probing
 def existing_dir(text: str) -> Path:
     """A directory that exists (a training run)."""

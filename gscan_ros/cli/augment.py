@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import argparse
 
-from gscan_ros.cli.args import existing_path, nonnegative_int, output_dir, positive_int
+from gscan_ros.cli.args import dataset_path, nonnegative_int, output_dir, positive_int
 
 
 def register(subparsers) -> None:
@@ -17,7 +17,7 @@ def register(subparsers) -> None:
                     "situation and the planner agree on, so `gscan-ros verify` accepts the output. "
                     "The seed and the input alone fix the output.",
     )
-    p.add_argument("--data", required=True, type=existing_path, metavar="DATASET",
+    p.add_argument("--data", required=True, type=dataset_path, metavar="DATASET",
                    help="dataset.txt, a directory holding it, or bag data")
     p.add_argument("--out", required=True, type=output_dir, metavar="DIR",
                    help="output directory (DIR/dataset.txt); not the input's")

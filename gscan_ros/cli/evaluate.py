@@ -5,8 +5,8 @@ import argparse
 
 from gscan_ros.cli.args import (
     add_device_argument,
+    dataset_path,
     existing_file,
-    existing_path,
     nonnegative_int,
     output_dir,
     positive_int,
@@ -30,7 +30,7 @@ def register(subparsers) -> None:
     )
     p.add_argument("--checkpoint", type=existing_file, metavar="CKPT",
                    help="checkpoint file (default: the shipped model)")
-    p.add_argument("--data", required=True, type=existing_path, metavar="DIR",
+    p.add_argument("--data", required=True, type=dataset_path, metavar="DIR",
                    help="dataset directory/file (dataset.txt or bags)")
     p.add_argument("--splits", nargs="+", metavar="SPLIT",
                    help="splits to evaluate (default: every test split present)")

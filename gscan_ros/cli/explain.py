@@ -21,9 +21,9 @@ from pathlib import Path
 
 from gscan_ros.cli.args import (
     add_device_argument,
+    dataset_path,
     existing_dir,
     existing_file,
-    existing_path,
     fill_defaults,
     int_in,
     nonnegative_int,
@@ -45,7 +45,7 @@ def register(subparsers) -> None:
     p.add_argument("command_text", nargs="?", metavar="COMMAND",
                    help="the command (default: the example's with --data, a random one with --seed)")
     source = p.add_mutually_exclusive_group()
-    source.add_argument("--data", type=existing_path, metavar="DS",
+    source.add_argument("--data", type=dataset_path, metavar="DS",
                         help="dataset.txt, its directory or a bag: the situation (or the --metrics episodes)")
     source.add_argument("--situation", type=existing_file, metavar="FILE.json",
                         help="a gSCAN situation JSON (or an object with a 'situation' key)")

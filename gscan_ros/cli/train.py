@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from gscan_ros.cli.args import add_device_argument, existing_file, existing_path, output_dir
+from gscan_ros.cli.args import add_device_argument, dataset_path, existing_file, output_dir
 
 
 def register(subparsers) -> None:
@@ -18,7 +18,7 @@ def register(subparsers) -> None:
     )
     p.add_argument("--config", type=existing_file, metavar="FILE",
                    help="YAML training config (default: built-in defaults; with --resume, RUN_DIR/config.yaml)")
-    p.add_argument("--data", required=True, type=existing_path, metavar="DIR",
+    p.add_argument("--data", required=True, type=dataset_path, metavar="DIR",
                    help="dataset directory/file (dataset.txt or bags)")
     p.add_argument("--out", type=output_dir, default="runs/train", metavar="RUN_DIR",
                    help="run directory (default: runs/train)")

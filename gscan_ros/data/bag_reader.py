@@ -35,6 +35,7 @@ from gscan_ros.data.episode_assembly import (
     StackDecoder,
     StackTopics,
     publication_order,
+    without_duplicates,
 )
 from gscan_ros.errors import DatasetFormatError, GscanError
 from gscan_ros.world.types import Action
@@ -134,7 +135,7 @@ class BagEpisodeReader(Iterator[Episode]):
         assemblers: dict[str, EpisodeAssembler] = {}  # one per stack namespace
         lost = False
         window = 0 if self.info.publish_ordered else REORDER_WINDOW
-        for item in publication_order(self._live_messages(), window):
+        for item in without_duplicates(publication_order(self._live_messages(), window), self.report.count_duplicate):
             if item is STREAM_LOSS:
                 lost = True
                 for assembler in assemblers.values():
@@ -151,6 +152,7 @@ class BagEpisodeReader(Iterator[Episode]):
         # A bag its recorder closed ends the episodes still running there (a third-party
         # recorder writes no end report for them); in one whose writer died, data may be lost.
         closed = self.info.closed and not self.report.truncated_files
+        self.report.missing_topics = self.stacks.missing_core()
         for namespace, assembler in assemblers.items():
             yield from self._ended(assembler, assembler.finish(closed=closed), namespace, graphs)
             if not self.stacks.is_stack(namespace):

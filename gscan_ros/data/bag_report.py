@@ -33,6 +33,8 @@ class BagReadReport:
     first_bad_message: str | None = None  # the first of them: topic, publish time, why
     grid_sizes: dict[int, int] = field(default_factory=dict)  # grid size -> episodes read (the selected ones)
     discarded_messages: int = 0  # read but outside any complete episode
+    duplicate_messages: int = 0  # read twice (same topic, publish time and bytes): the copy is dropped, not lost
+    missing_topics: list[str] = field(default_factory=list)  # no stack in the bag: the episode topics it lacks
     truncated_files: list[Path] = field(default_factory=list)  # ended before the MCAP footer
     missing_files: list[Path] = field(default_factory=list)  # storage files of the bag that are absent (all lost)
     unread_bytes: int = 0  # trailing bytes that held no complete record
@@ -102,6 +104,10 @@ class BagReadReport:
         if reason is not None:
             self.drop_reasons[reason] = self.drop_reasons.get(reason, 0) + episodes
 
+    def count_duplicate(self, message=None) -> None:
+        """A message the bag holds twice; its copy is left out (`without_duplicates`)."""
+        self.duplicate_messages += 1
+
     def count_grid_size(self, grid_size: int) -> None:
         self.grid_sizes[grid_size] = self.grid_sizes.get(grid_size, 0) + 1
 
@@ -133,6 +139,8 @@ class BagReadReport:
     def summary(self) -> str:
         """One line: state, what was recovered, what was lost."""
         details = []
+        if self.missing_topics:
+            details.append(f"no gSCAN stack: it lacks {', '.join(self.missing_topics)}, which episodes are read from")
         if self.missing:
             names = ", ".join(p.name for p in self.missing_files[:3]) + (", ..." if len(self.missing_files) > 3 else "")
             details.append(f"{len(self.missing_files)} storage file(s) missing: {names}")
@@ -147,6 +155,8 @@ class BagReadReport:
             details.append(f"no MCAP footer{torn}")
         if self.bad_messages:
             details.append(f"{self.bad_messages} bad message(s), the first {self.first_bad_message}")
+        if self.duplicate_messages:
+            details.append(f"{self.duplicate_messages} duplicate message(s) left out")
         if self.incomplete_episodes:
             reasons = self.reasons()
             details.append(f"{self.incomplete_episodes} incomplete" + (f": {reasons}" if reasons else ""))

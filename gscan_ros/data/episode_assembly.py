@@ -17,9 +17,10 @@ DDS source timestamp), and episodes are what the policy reports (docs/bags.md):
 - its command graph is the newest `/command_graph` before it started of the command its
   ACTIVE report names (two commands sent within milliseconds both reach the recorder
   before the first one's ACTIVE report; a stack whose reports name no command: the
-  newest graph), its typed command the newest `/command` when that graph is the newest,
-  and what a bag adds (`/episode`, keyed by the report's id) its split, example id and
-  dataset fields;
+  newest graph), its typed command the newest `/command` when that graph is the newest;
+  in a bag without `/command_graph`, its command is the one its ACTIVE report names (a
+  newer `/command` may be the one that preempted it); and what a bag adds (`/episode`,
+  keyed by the report's id) its split, example id and dataset fields;
 - its observations (for the training cache) follow the lock-step protocol: the state it
   acts on first is the newest `/observation` before its first action (the reply to a
   preempted episode's last action may come after the next ACTIVE report), and each
@@ -100,6 +101,15 @@ class StackTopics:
     def is_stack(self, namespace: str) -> bool:
         return CORE_TOPICS <= self._names.get(namespace, set())
 
+    def missing_core(self) -> list[str]:
+        """When no namespace holds a stack: the topics (with their types) that the one closest
+        to a stack lacks, so a bag recorded without them is told what to record."""
+        if any(self.is_stack(ns) for ns in self._names):
+            return []
+        namespace = max(self._names, key=lambda ns: len(CORE_TOPICS & self._names[ns]), default="")
+        return [f"{namespace}/{name} ({STACK_TOPICS[name].msg_type})"
+                for name in sorted(CORE_TOPICS - self._names.get(namespace, set()))]
+
     def carries_records(self, namespace: str) -> bool:
         """Whether the stack in `namespace` has `/episode` records (our writers' bags do)."""
         return EPISODE.name.lstrip("/") in self._names.get(namespace, set())
@@ -135,6 +145,30 @@ def publication_order(items: Iterable[Message | object], window: int = REORDER_W
             yield heapq.heappushpop(heap, item)
     while heap:
         yield heapq.heappop(heap)
+
+
+def without_duplicates(items: Iterable[Message | object],
+                       on_duplicate: Callable[[Message], None]) -> Iterator[Message | object]:
+    """`items` (in publication order) without a message equal to one already passed at the
+    same publish time: the same stack topic and the same bytes. DDS stamps each sample of a
+    publisher with its own time, so two equal ones are one sample written twice (a bag
+    merged with itself, a recorder that logged a sample twice); the second would add an
+    action to a demonstration."""
+    seen: set[tuple[str, str, bytes]] = set()
+    now = None
+    for item in items:
+        if item is LOSS:
+            seen.clear()
+            now = None
+        elif item.publish_ns != now:
+            now = item.publish_ns
+            seen = {(item.namespace, item.topic, item.data)}
+        elif (item.namespace, item.topic, item.data) in seen:
+            on_duplicate(item)
+            continue
+        else:
+            seen.add((item.namespace, item.topic, item.data))
+        yield item
 
 
 class StackDecoder:
@@ -414,7 +448,9 @@ class EpisodeAssembler:
                 self._drop("a new episode started before it reported its end")
                 self._span = 1
             graph = self._graph_of(report.text)
-            typed = self._command if graph is self._graph else None  # the newest command made the newest graph
+            # The newest command made the newest graph; with no graph recorded, the newest
+            # command may be one typed after this episode's (the ACTIVE report names the one taken).
+            typed = self._command if graph is self._graph and (graph is not None or not report.text) else None
             prologue = [v for v in (self._situation, graph, typed) if isinstance(v, _Unreadable)]
             self._open = _Open(
                 report=report,
@@ -461,7 +497,7 @@ class EpisodeAssembler:
                 reason = "its /situation is no gSCAN situation"
         record = episode.record or {}
         graph = _graph_fields(episode.graph_json)
-        command = record.get("command") or graph.get("command") or episode.command
+        command = record.get("command") or graph.get("command") or episode.report.text or episode.command
         if reason is None and command is None:
             reason = "no command or command graph before it started"
         if reason is not None:

@@ -197,12 +197,22 @@ def require_delivered(path: str | os.PathLike, wanted: list[str] | None, deliver
     raise DatasetFormatError(f"no episodes of split(s) {', '.join(missing)} could be read from {path} ({why})")
 
 
+def refuse_bag_file(path: str | os.PathLike) -> None:
+    """A bag is read from its folder (metadata.yaml and every storage file); one of its .mcap
+    files passed alone would be read as a dataset.txt."""
+    root = Path(path)
+    if root.is_file() and root.suffix == ".mcap":
+        raise DatasetFormatError(f"{root}: a storage file of a bag; pass the bag's folder ({root.parent}), "
+                                 f"which every reader takes")
+
+
 def _require_dataset_txt(path: str | os.PathLike) -> None:
     """dataset.txt is what is left to read at `path`: a folder without it holds no dataset
     any reader knows, and the error says what was looked for."""
     from gscan_ros.data.dataset import DATASET_FILE
 
     root = Path(path)
+    refuse_bag_file(root)
     if root.is_dir() and not (root / DATASET_FILE).exists():
         raise DatasetFormatError(f"{root}: no dataset here (looked for {DATASET_FILE}, a rosbag2 bag: "
                                  f"{BAG_METADATA} or .mcap files, and per-split bags: <split>/{BAG_METADATA})")

@@ -37,8 +37,9 @@ from gscan_ros.world.types import Action
 log = logging.getLogger(__name__)
 
 # 4: every outcome cached (headers' "outcome"), selected at load; 5: every stack of a bag read,
-# bad messages cost their episode, `exact` says whether the episode count is known.
-CACHE_VERSION = 5
+# bad messages cost their episode, `exact` says whether the episode count is known; 6: messages
+# held twice read once, an episode without graphs named by its ACTIVE report.
+CACHE_VERSION = 6
 CACHE_FILE = "episodes.npz"
 _ACTIONS = tuple(Action)
 

@@ -513,3 +513,18 @@ def test_a_bag_without_an_episode_topic_names_it(tmp_path):
     reader = BagEpisodeReader(_record(stack, tmp_path / "no_situation", recorder=False))
     assert list(reader.records()) == []
     assert "no gSCAN stack: it lacks /situation (std_msgs/msg/String)" in reader.report.summary()
+
+
+def test_a_message_logged_beyond_the_reorder_window_is_lost_not_misplaced():
+    """Put back in order within the window; one logged further away would join whatever
+    episode is open where it was logged, so it becomes a loss there instead."""
+    from gscan_ros.data.episode_assembly import LOSS, Message, publication_order
+
+    def message(t):
+        return Message(t, t, "", "action", b"")
+
+    logged = [message(t) for t in (2, 1, 3, 4, 5, 6)] + [message(0)] + [message(7)]  # 0 comes 6 places late
+    late = []
+    out = list(publication_order(logged, window=2, on_late=late.append))
+    assert [m if m is LOSS else m.publish_ns for m in out] == [1, 2, 3, 4, LOSS, 5, 6, 7]
+    assert [m.publish_ns for m in late] == [0]

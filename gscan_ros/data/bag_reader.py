@@ -135,7 +135,8 @@ class BagEpisodeReader(Iterator[Episode]):
         assemblers: dict[str, EpisodeAssembler] = {}  # one per stack namespace
         lost = False
         window = 0 if self.info.publish_ordered else REORDER_WINDOW
-        for item in without_duplicates(publication_order(self._live_messages(), window), self.report.count_duplicate):
+        ordered = publication_order(self._live_messages(), window, self.report.count_late)
+        for item in without_duplicates(ordered, self.report.count_duplicate):
             if item is STREAM_LOSS:
                 lost = True
                 for assembler in assemblers.values():

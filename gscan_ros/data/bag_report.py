@@ -35,6 +35,7 @@ class BagReadReport:
     discarded_messages: int = 0  # read but outside any complete episode
     duplicate_messages: int = 0  # read twice (same topic, publish time and bytes): the copy is dropped, not lost
     missing_topics: list[str] = field(default_factory=list)  # no stack in the bag: the episode topics it lacks
+    late_messages: int = 0  # logged beyond the reorder window from their publication order: each lost
     truncated_files: list[Path] = field(default_factory=list)  # ended before the MCAP footer
     missing_files: list[Path] = field(default_factory=list)  # storage files of the bag that are absent (all lost)
     unread_bytes: int = 0  # trailing bytes that held no complete record
@@ -104,6 +105,11 @@ class BagReadReport:
         if reason is not None:
             self.drop_reasons[reason] = self.drop_reasons.get(reason, 0) + episodes
 
+    def count_late(self, message=None) -> None:
+        """A message logged too far from its publication order to be put back: lost, with the
+        episode it fell into (`publication_order`)."""
+        self.late_messages += 1
+
     def count_duplicate(self, message=None) -> None:
         """A message the bag holds twice; its copy is left out (`without_duplicates`)."""
         self.duplicate_messages += 1
@@ -128,7 +134,7 @@ class BagReadReport:
     @property
     def complete(self) -> bool:
         """Nothing lost and nothing damaged."""
-        return not (self.damaged or self.lost_episodes or self.lost_messages)
+        return not (self.damaged or self.lost_episodes or self.lost_messages or self.late_messages)
 
     def state(self) -> str:
         """'intact', or what is wrong: 'corrupt', 'truncated', 'missing files', joined by 'and'."""
@@ -155,6 +161,9 @@ class BagReadReport:
             details.append(f"no MCAP footer{torn}")
         if self.bad_messages:
             details.append(f"{self.bad_messages} bad message(s), the first {self.first_bad_message}")
+        if self.late_messages:
+            details.append(f"{self.late_messages} message(s) logged beyond the reorder window from their "
+                           f"publication order, each lost with the episode it fell into")
         if self.duplicate_messages:
             details.append(f"{self.duplicate_messages} duplicate message(s) left out")
         if self.incomplete_episodes:

@@ -126,10 +126,27 @@ class Message(NamedTuple):
     data: bytes
 
 
-def publication_order(items: Iterable[Message | object], window: int = REORDER_WINDOW) -> Iterator[Message | object]:
+def publication_order(items: Iterable[Message | object], window: int = REORDER_WINDOW,
+                      on_late: Callable[[Message], None] | None = None) -> Iterator[Message | object]:
     """`items` in publish-time order, as far as a window of `window` messages can restore it
     (0: as they come, for a bag written in publication order); a LOSS marker flushes the
-    window first (nothing is reordered across lost data)."""
+    window first (nothing is reordered across lost data). A message that comes out older
+    than one already passed was logged further from its place than the window reaches: it
+    goes to `on_late` and a LOSS marker takes its place, so the episode it would have
+    joined is dropped, not given a message of another."""
+    newest = None
+    for item in _reordered(items, window):
+        if item is not LOSS and newest is not None and item.publish_ns < newest:
+            if on_late is not None:
+                on_late(item)
+            yield LOSS
+            continue
+        if item is not LOSS:
+            newest = item.publish_ns
+        yield item
+
+
+def _reordered(items: Iterable[Message | object], window: int) -> Iterator[Message | object]:
     if window == 0:
         yield from items
         return

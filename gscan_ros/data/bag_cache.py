@@ -38,7 +38,8 @@ log = logging.getLogger(__name__)
 
 # 4: every outcome cached (headers' "outcome"), selected at load; 5: every stack of a bag read,
 # bad messages cost their episode, `exact` says whether the episode count is known; 6: messages
-# held twice read once, an episode without graphs named by its ACTIVE report.
+# held twice read once, an episode without graphs named by its ACTIVE report, a message logged
+# beyond the reorder window a loss.
 CACHE_VERSION = 6
 CACHE_FILE = "episodes.npz"
 _ACTIONS = tuple(Action)

@@ -268,6 +268,11 @@ def test_metadata_problems_name_the_file(small_chunk_bag, tmp_path):
     with pytest.raises(DatasetFormatError, match="storage 'sqlite3' is not supported"):
         read_bag_info(bag)
     info = yaml.safe_load(text)
+    info["rosbag2_bagfile_information"].update(compression_mode="MESSAGE", compression_format="zstd")
+    (bag / "metadata.yaml").write_text(yaml.safe_dump(info))
+    with pytest.raises(DatasetFormatError, match="compression_mode 'MESSAGE' is not supported; MCAP's own chunk"):
+        read_bag_info(bag)
+    info = yaml.safe_load(text)
     info["rosbag2_bagfile_information"]["relative_file_paths"] = "bag_0.mcap"  # a string, not a list
     (bag / "metadata.yaml").write_text(yaml.safe_dump(info))
     with pytest.raises(DatasetFormatError, match="relative_file_paths must be a list of file names, got 'bag_0.mcap'"):

@@ -212,8 +212,12 @@ def read_bag_info(bag_dir: str | os.PathLike) -> BagInfo:
         storage = info["storage_identifier"]
         if storage != STORAGE_ID:
             raise DatasetFormatError(f"{path}: storage {quoted(storage)} is not supported (only {STORAGE_ID!r})")
-        if info.get("compression_mode") not in (None, "", "none", "NONE"):
-            raise DatasetFormatError(f"{path}: rosbag2 file compression is not supported (MCAP chunks are)")
+        mode = info.get("compression_mode")
+        if mode not in (None, "", "none", "NONE"):
+            raise DatasetFormatError(
+                f"{path}: rosbag2 compression_mode {quoted(mode)} is not supported; MCAP's own chunk compression "
+                f"is (record with `--storage-preset-profile zstd_fast`, or rewrite the bag uncompressed with "
+                f"`ros2 bag convert`)")
         files = info["relative_file_paths"]
         if not isinstance(files, list) or not all(isinstance(p, str) for p in files):
             raise DatasetFormatError(f"{path}: relative_file_paths must be a list of file names, got {quoted(files)}")

@@ -55,6 +55,10 @@ from gscan_ros.world.types import Action
 from msg_adapters import cdr_to_action, cdr_to_episode_status, cdr_to_graph, cdr_to_text, text_to_cdr
 
 READY_TIMEOUT_S = 60.0
+# DDS matches the two ends of a topic apart: the commander's subscriptions can count a
+# publisher before that publisher has matched them (and sends them nothing). Once the stack
+# looks ready, the commander spins this long more, the first time, for the far ends to match.
+MATCH_SETTLE_S = 0.5
 # After the end report: how long to wait for the episode's last actions and its graph
 # (topics are not ordered with each other).
 LATE_GRACE_S = 5.0
@@ -143,6 +147,7 @@ class GscanCommander(Node):
         self._attention: dict[str, list[tuple[int, bytes]]] = {}
         self._command_pub = self.create_publisher(String, COMMAND, qos_profile(interface.COMMAND))
         self._reset_client = self.create_client(Trigger, RESET_WORLD)
+        self._matched = False  # MATCH_SETTLE_S spun once the stack looked ready
         self._outputs = {
             ACTION: self.create_subscription(String, ACTION, self._on_action, qos_profile(interface.ACTION), raw=True),
             STATUS: self.create_subscription(String, STATUS, self._on_status, qos_profile(interface.STATUS), raw=True),
@@ -237,6 +242,9 @@ class GscanCommander(Node):
         self.spin_until(ready, timeout, "the gscan_ros stack (subscribers on command, command_graph, observation, "
                                         "action, publishers of command_graph, episode_status, action, status "
                                         "and the reset_world service)")
+        if not self._matched:
+            self.spin_for(MATCH_SETTLE_S)
+            self._matched = True
 
     def wait_for_status(self, prefix: str, timeout: float) -> str:
         """The first status line (since the commander started) that starts with `prefix`."""

@@ -212,28 +212,35 @@ def test_preempted_episodes_last_action_logged_late_stays_in_it(tmp_path):
         (_live("walk to a blue circle", middle, second), es.COMPLETE)]
 
 
-def test_two_commands_sent_at_once_each_keep_their_own_episode(tmp_path):
-    """Both graphs reach the recorder before the first one's ACTIVE report: the episode
-    takes the graph of the command its report names, not the newest (which preempts it)."""
-    rng = random.Random(4)
+def _two_commands_sent_at_once(rng: random.Random, *, graphs: bool, first_len: int, second_len: int):
+    """Two commands typed at once (with their graphs when `graphs`): the first is followed
+    for `first_len` actions and preempted, the second completes. The stack, and the episodes
+    a reader must return."""
     stack = LiveStack(make_episodes(1, seed=3)[0].situation)
     stack.state()
     first_command, second_command = "walk to a red circle", "walk to a blue circle"
-    stack.command(first_command, PARSER.parse(first_command))
-    stack.command(second_command, PARSER.parse(second_command))
-    start, first = stack.world.snapshot(), stack.route(rng, 1)
+    for command in (first_command, second_command):
+        stack.command(command, PARSER.parse(command) if graphs else None)
+    start, first = stack.world.snapshot(), stack.route(rng, first_len)
     preempted = stack.start(first_command)
-    stack.act(first[0])
+    for action in first:
+        stack.act(action)
     stack.end(preempted, es.PREEMPTED)
-    middle, second = stack.world.snapshot(), stack.route(rng, 3)
+    middle, second = stack.world.snapshot(), stack.route(rng, second_len)
     following = stack.start(second_command)
     for action in [*second, Action.EOS]:
         stack.act(action)
     stack.end(following, es.COMPLETE)
+    return stack, [(_live(first_command, start, first), es.PREEMPTED),
+                   (_live(second_command, middle, second), es.COMPLETE)]
+
+
+def test_two_commands_sent_at_once_each_keep_their_own_episode(tmp_path):
+    """Both graphs reach the recorder before the first one's ACTIVE report: the episode
+    takes the graph of the command its report names, not the newest (which preempts it)."""
+    stack, expected = _two_commands_sent_at_once(random.Random(4), graphs=True, first_len=1, second_len=3)
     records = list(BagEpisodeReader(_record(stack, tmp_path / "both"), include_incomplete=True).records())
-    assert [(r.episode, r.outcome) for r in records] == [
-        (_live(first_command, start, first), es.PREEMPTED),
-        (_live(second_command, middle, second), es.COMPLETE)]
+    assert [(r.episode, r.outcome) for r in records] == expected
     assert "typed_command" not in records[0].episode.meta  # the newest typed command is the second's
 
 
@@ -461,27 +468,10 @@ def test_a_bad_observation_costs_its_episode_whether_states_are_decoded_or_not(t
 def test_without_command_graphs_an_episode_takes_the_command_its_report_names(tmp_path):
     """An all-topics bag of /command but no /command_graph: the newest typed command may be
     the one that preempted the episode, so the ACTIVE report's command labels it."""
-    rng = random.Random(5)
-    stack = LiveStack(make_episodes(1, seed=3)[0].situation)
-    stack.state()
-    first_command, second_command = "walk to a red circle", "walk to a blue circle"
-    stack.command(first_command)
-    stack.command(second_command)
-    start, first = stack.world.snapshot(), stack.route(rng, 2)
-    preempted = stack.start(first_command)
-    for action in first:
-        stack.act(action)
-    stack.end(preempted, es.PREEMPTED)
-    middle, second = stack.world.snapshot(), stack.route(rng, 2)
-    following = stack.start(second_command)
-    for action in [*second, Action.EOS]:
-        stack.act(action)
-    stack.end(following, es.COMPLETE)
+    stack, expected = _two_commands_sent_at_once(random.Random(5), graphs=False, first_len=2, second_len=2)
     bag = _record(stack, tmp_path / "no_graphs", recorder=False)
     records = list(BagEpisodeReader(bag, include_incomplete=True).records())
-    assert [(r.episode, r.outcome) for r in records] == [
-        (_live(first_command, start, first), es.PREEMPTED),
-        (_live(second_command, middle, second), es.COMPLETE)]
+    assert [(r.episode, r.outcome) for r in records] == expected
     assert all("typed_command" not in r.episode.meta for r in records)
 
 

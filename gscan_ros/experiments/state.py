@@ -160,7 +160,7 @@ def _files_state(run_dir: Path, spec: RunSpec, cfg, data_root: Path) -> RunState
         state.status, state.detail = "stale", "; ".join(reasons)
     elif end is not None and not model.is_file():  # trained, but its numbers could not be (re-)checked
         state.status = "stale"
-        state.detail = f"no weights (model.pt) to {'re-check its results' if results else 'evaluate'}"
+        state.detail = no_weights(evaluated=bool(results))
     elif end is not None and _evaluated(results, spec, end, model):
         state.status = "done"
     elif end is not None:
@@ -176,6 +176,11 @@ def _files_state(run_dir: Path, spec: RunSpec, cfg, data_root: Path) -> RunState
     elif state.updates:
         state.detail = f"no last.pt: starts over, these logged updates kept in {REPLACED}/"
     return state
+
+
+def no_weights(evaluated: bool = True) -> str:
+    """Why a trained run without its model.pt is retrained."""
+    return f"no weights (model.pt) to {'re-check its results' if evaluated else 'evaluate'}"
 
 
 def plan_changes(run_dir: Path, spec: RunSpec, cfg, data_root: Path, events: list[dict] | None = None,

@@ -336,22 +336,22 @@ class Tables:
                 seen[g.column] = (g.column, g.title, g.paper_column)
         return list(seen.values())
 
+    def runs1(self, column: str, row: str) -> list[RunResult]:
+        """The runs behind a Table 1 cell."""
+        return [r for g in self.groups if g.table == 1 and g.column == column for r in self.members[g] if row in r.rows]
+
+    def runs2(self, group: Group, row: str) -> list[RunResult]:
+        return [r for r in self.members[group] if row in r.rows]
+
     def cell1(self, column: str, row: str) -> Cell | None:
-        values = tuple(r.rows[row] for g in self.groups if g.table == 1 and g.column == column
-                       for r in self.members[g] if row in r.rows)
-        return Cell(values) if values else None
-
-    def retrained1(self, column: str, row: str) -> bool:
-        """A run behind this Table 1 cell is one the plan retrains."""
-        return any(r.name in self.retrains for g in self.groups if g.table == 1 and g.column == column
-                   for r in self.members[g] if row in r.rows)
-
-    def retrained2(self, group: Group, row: str) -> bool:
-        return any(r.name in self.retrains for r in self.members[group] if row in r.rows)
+        return _cell(self.runs1(column, row), row)
 
     def cell2(self, group: Group, row: str) -> Cell | None:
-        values = tuple(r.rows[row] for r in self.members[group] if row in r.rows)
-        return Cell(values) if values else None
+        return _cell(self.runs2(group, row), row)
+
+    def retrained(self, runs: list[RunResult]) -> bool:
+        """One of `runs` (a cell's) is a run the plan retrains."""
+        return any(r.name in self.retrains for r in runs)
 
     def table1_rows(self) -> list[str]:
         """The paper's rows (its figures show even where we have none), then any others."""
@@ -368,6 +368,10 @@ class Tables:
             if g.table == table and g.column == column and any(row in r.rows for r in self.members[g]):
                 return self.group_rise(g)
         return None
+
+
+def _cell(runs: list[RunResult], row: str) -> Cell | None:
+    return Cell(tuple(r.rows[row] for r in runs)) if runs else None
 
 
 def _paper1(paper_column: str | None, row: str):
@@ -453,7 +457,7 @@ def _table1(t: Tables) -> list[str]:
         return []
     out = ["## Table 1: compositional splits A–H", "", *_head("split", [title for _, title, _ in columns])]
     for row in t.table1_rows():
-        cells = [_cell_text(t.cell1(column, row), _paper1(paper, row)) + _mark(t.retrained1(column, row))
+        cells = [_cell_text(t.cell1(column, row), _paper1(paper, row)) + _mark(t.retrained(t.runs1(column, row)))
                  for column, _, paper in columns]
         out.append(f"| {row} | " + " | ".join(cells) + " |")
     return out + [""]
@@ -481,7 +485,7 @@ def _table2(t: Tables) -> list[str]:
         cells = [t.cell2(g, row) for g in groups]
         if row not in TABLE2_ROWS and all(c is None for c in cells):
             continue
-        texts = (_cell_text(c, _paper2(g, row)) + _mark(t.retrained2(g, row)) for c, g in zip(cells, groups))
+        texts = (_cell_text(c, _paper2(g, row)) + _mark(t.retrained(t.runs2(g, row))) for c, g in zip(cells, groups))
         out.append(f"| {_length_name(row)} | " + " | ".join(texts) + " |")
     return out + [""] + _length_histogram(t, groups)
 
@@ -754,7 +758,8 @@ def plan_retrains(runs: list[RunResult], plan_path: Path) -> dict[str, str]:
     config, its data, its weights), so the report is the same on every machine; runs the
     plan does not name are left alone."""
     from gscan_ros.experiments.plan import load_plan, resolve_config
-    from gscan_ros.experiments.state import plan_changes
+    from gscan_ros.experiments.state import no_weights, plan_changes
+    from gscan_ros.training.trainer import RunFiles
 
     plan = load_plan(plan_path)
     specs = {spec.name: spec for spec in plan.runs}
@@ -764,8 +769,8 @@ def plan_retrains(runs: list[RunResult], plan_path: Path) -> dict[str, str]:
         if spec is None or run.directory is None:
             continue
         reasons = plan_changes(run.directory, spec, resolve_config(plan, spec), plan.data_root)
-        if not (run.directory / "model.pt").is_file():
-            reasons.append("no weights (model.pt) to re-check its results")
+        if not RunFiles(run.directory).model.is_file():
+            reasons.append(no_weights())
         if reasons:
             retrains[run.name] = "; ".join(reasons)
     return retrains

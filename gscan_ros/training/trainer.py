@@ -221,9 +221,8 @@ def load_dev(data: str, cfg: TrainConfig) -> list:
     cap = cfg.max_dev_target_length
     pick = [i for i in range(len(source))
             if not cap or len(cache.actions(i) if cache is not None else source[i].actions) <= cap]
-    if cfg.max_dev_examples and len(pick) > cfg.max_dev_examples:
-        chosen = np.random.default_rng(cfg.seed).choice(len(pick), cfg.max_dev_examples, replace=False)
-        pick = [pick[i] for i in sorted(chosen)]
+    if cfg.max_dev_examples:
+        pick = seeded_subset(pick, cfg.max_dev_examples, cfg.seed)
     if cache is not None:
         return cache.subset(pick).episodes
     return [source[i] for i in pick]
@@ -633,10 +632,15 @@ def screen_episodes(dev: list, seed: int) -> list:
     """The SCREEN_EPISODES dev episodes a seed screen reads, drawn with the run's seed (every
     candidate reads the same ones). Dev is stored grouped by command, so its first
     episodes are no sample of it: they can miss a verb or an adverb altogether."""
-    if len(dev) <= SCREEN_EPISODES:
-        return list(dev)
-    chosen = np.random.default_rng(seed).choice(len(dev), SCREEN_EPISODES, replace=False)
-    return [dev[i] for i in sorted(chosen)]
+    return seeded_subset(dev, SCREEN_EPISODES, seed)
+
+
+def seeded_subset(items: list, n: int, seed: int) -> list:
+    """`n` of `items` drawn with `seed`, in their order (all of them when there are no more)."""
+    if len(items) <= n:
+        return list(items)
+    chosen = np.random.default_rng(seed).choice(len(items), n, replace=False)
+    return [items[i] for i in sorted(chosen)]
 
 
 def _checkpoint_step(path: Path) -> int | None:
